@@ -8,8 +8,10 @@ One module per domain; each exposes `TASKS`, a dict from dm_control task name to
 from __future__ import annotations
 
 import importlib
+from typing import TYPE_CHECKING
 
-from dmcr_jax.models.base import State, Task, TaskSpec, build_task
+if TYPE_CHECKING:  # imported lazily: this package's names are cheap to import
+  from dmcr_jax.models.base import State, Task, TaskSpec
 
 # The DMCR domains and tasks (the paper's release, minus none: 10 domains, 22 tasks).
 DOMAIN_TASKS: dict[str, tuple[str, ...]] = {
@@ -38,14 +40,14 @@ def split_name(name: str) -> tuple[str, str]:
   return domain, task
 
 
-def spec(name: str) -> TaskSpec:
+def spec(name: str) -> "TaskSpec":
   """The `TaskSpec` of a registered task name like "walker-walk"."""
   domain, task = split_name(name)
   module = importlib.import_module(f"dmcr_jax.models.{domain}")
   return module.TASKS[task]
 
 
-def load(name: str) -> Task:
+def load(name: str) -> "Task":
   """Builds (once per process, cached) the `Task` called `name`.
 
   Args:
@@ -57,7 +59,15 @@ def load(name: str) -> Task:
   Raises:
     ValueError: if `name` is not a registered task (the message lists them).
   """
+  from dmcr_jax.models.base import build_task
   return build_task(spec(name))
+
+
+def __getattr__(name):
+  if name in ("State", "Task", "TaskSpec"):
+    from dmcr_jax.models import base
+    return getattr(base, name)
+  raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 __all__ = ["ALL_TASKS", "DOMAIN_TASKS", "State", "Task", "TaskSpec", "load",

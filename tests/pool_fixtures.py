@@ -1,0 +1,35 @@
+"""Toy worker renderers for the WorkerPool tests (imported by spawned workers)."""
+
+import os
+import signal
+import time
+
+import numpy as np
+
+KILL, HANG, RAISE = 1, 2, 3
+
+
+class ToyRenderer:
+  """Writes `value + 1` into every output element; fault modes keyed by a marker file."""
+
+  def __init__(self, marker: str):
+    self.marker = marker
+
+  def _fault_once(self) -> bool:
+    try:
+      os.remove(self.marker)  # only the first worker to see the marker faults
+      return True
+    except FileNotFoundError:
+      return False
+
+  def __call__(self, inputs, out):
+    for i in range(len(out)):
+      mode = int(inputs["mode"][i])
+      if mode and self._fault_once():
+        if mode == KILL:
+          os.kill(os.getpid(), signal.SIGKILL)
+        elif mode == HANG:
+          time.sleep(3600)
+      if mode == RAISE:
+        raise ValueError(f"bad env value {inputs['value'][i]}")
+      out[i] = inputs["value"][i] + 1

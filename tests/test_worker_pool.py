@@ -1,0 +1,121 @@
+"""WorkerPool: slices, shared memory, killed/hung/raising workers, clean shutdown."""
+
+import os
+
+import numpy as np
+import pytest
+
+from dmcr_jax.visuals.pool import ArraySpec, WorkerError, WorkerPool
+from tests import pool_fixtures as fx
+
+IN = {"value": ArraySpec((), "float64"), "mode": ArraySpec((), "int32")}
+OUT = ArraySpec((2, 3), "float32")
+
+
+def make_pool(tmp_path, workers=2, timeout=20.0, max_batch=64):
+  marker = str(tmp_path / "fault")
+  return WorkerPool(fx.ToyRenderer, (marker,), IN, OUT, max_batch=max_batch,
+                    workers=workers, timeout=timeout), marker
+
+
+def fill(pool, n, mode=None):
+  pool.inputs["value"][:n] = np.arange(n) * 10.0
+  pool.inputs["mode"][:n] = 0 if mode is None else mode
+  pool.output[:n] = -1
+
+
+def expected(n):
+  return np.broadcast_to((np.arange(n) * 10.0 + 1)[:, None, None], (n, 2, 3))
+
+
+def alive(pid):
+  try:
+    os.kill(pid, 0)
+  except ProcessLookupError:
+    return False
+  # A zombie is dead for our purposes.
+  try:
+    with open(f"/proc/{pid}/stat") as f:
+      return f.read().split()[2] != "Z"
+  except FileNotFoundError:
+    return False
+
+
+@pytest.mark.parametrize("workers,n", [(1, 1), (2, 5), (3, 64), (3, 2)])
+def test_every_slice_rendered_once(tmp_path, workers, n):
+  pool, _ = make_pool(tmp_path, workers=workers)
+  with pool:
+    fill(pool, n)
+    np.testing.assert_array_equal(pool.run(n), expected(n))
+    assert sum(b - a for a, b in pool.slices(n)) == n
+
+
+def test_killed_worker_is_restarted_and_slice_rerendered(tmp_path):
+  with make_pool(tmp_path, workers=2)[0] as pool:
+    marker = str(tmp_path / "fault")
+    n = 20
+    fill(pool, n)
+    pool.inputs["mode"][15] = fx.KILL   # in worker 1's slice
+    open(marker, "w").close()
+    old = pool.pids
+    np.testing.assert_array_equal(pool.run(n), expected(n))
+    assert pool.restarts == 1
+    assert pool.pids[0] == old[0] and pool.pids[1] != old[1]
+    assert not alive(old[1])
+    fill(pool, n)  # and the pool keeps working
+    np.testing.assert_array_equal(pool.run(n), expected(n))
+
+
+def test_hung_worker_times_out_and_is_replaced(tmp_path):
+  with make_pool(tmp_path, workers=2, timeout=3.0)[0] as pool:
+    n = 8
+    fill(pool, n)
+    pool.inputs["mode"][1] = fx.HANG
+    open(tmp_path / "fault", "w").close()
+    np.testing.assert_array_equal(pool.run(n), expected(n))
+    assert pool.restarts == 1
+
+
+def test_worker_exception_surfaces_with_traceback(tmp_path):
+  with make_pool(tmp_path, workers=2)[0] as pool:
+    n = 6
+    fill(pool, n)
+    pool.inputs["mode"][4] = fx.RAISE
+    with pytest.raises(WorkerError, match=r"(?s)Traceback.*ValueError: bad env value 40"):
+      pool.run(n)
+    fill(pool, n)
+    np.testing.assert_array_equal(pool.run(n), expected(n))
+
+
+def test_close_leaves_no_processes_or_shared_memory(tmp_path):
+  pool, _ = make_pool(tmp_path, workers=3)
+  names = [s.name for s in pool._segments]
+  pids = pool.pids
+  assert all(os.path.exists(f"/dev/shm/{n}") for n in names)
+  pool.close()
+  pool.close()  # idempotent
+  assert not any(alive(p) for p in pids)
+  assert not any(os.path.exists(f"/dev/shm/{n}") for n in names)
+  with pytest.raises(RuntimeError, match="closed"):
+    pool.run(1)
+
+
+def test_context_manager_cleans_up_after_error(tmp_path):
+  with pytest.raises(KeyError):
+    with make_pool(tmp_path, workers=2)[0] as pool:
+      names = [s.name for s in pool._segments]
+      pids = pool.pids
+      raise KeyError("boom")
+  assert not any(alive(p) for p in pids)
+  assert not any(os.path.exists(f"/dev/shm/{n}") for n in names)
+
+
+def test_bad_arguments(tmp_path):
+  with pytest.raises(ValueError, match="workers"):
+    WorkerPool(fx.ToyRenderer, ("x",), IN, OUT, max_batch=4, workers=0)
+  with pytest.raises(ValueError, match="max_batch"):
+    WorkerPool(fx.ToyRenderer, ("x",), IN, OUT, max_batch=0, workers=1)
+  with make_pool(tmp_path, workers=1, max_batch=4)[0] as pool:
+    for bad in (0, 5, -1):
+      with pytest.raises(ValueError, match=r"batch must be in \[1, 4\]"):
+        pool.run(bad)
