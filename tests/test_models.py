@@ -36,6 +36,7 @@ from tests import dmc_reference
 # looser entries say why.
 TRAJECTORY_ATOL = {
     "default": 1e-3,
+    "walker": 2e-2,  # f32 contact drift 2e-5 -> 4.7e-3 over 20 steps; f64 MJX: 1e-12
 }
 
 STATE_ATOL = 1e-4

@@ -198,9 +198,15 @@ class Task:
         f"{field}:{name}": (field, _model_id(self.mj_model, field, name))
         for field, name in spec.model_variables}
     state = jax.eval_shape(self.reset, jax.random.key(0))
-    obs = jax.eval_shape(
-        lambda s: spec.observation(self.mjx_model, s.data, s.info), state)
-    self.observation_shapes = {k: tuple(v.shape) for k, v in obs.items()}
+    names: list[str] = []
+
+    def parts(s):  # a list keeps dm_control's order (pytree dicts are key-sorted)
+      obs = spec.observation(self.mjx_model, s.data, s.info)
+      names[:] = list(obs)
+      return list(obs.values())
+
+    shapes = jax.eval_shape(parts, state)
+    self.observation_shapes = {k: tuple(v.shape) for k, v in zip(names, shapes)}
     self.observation_size = int(state.obs.shape[0])
 
   def __repr__(self):

@@ -1,0 +1,96 @@
+"""Walker: stand, walk, run (dm_control `walker`).
+
+A JAX port of `dm_control.suite.walker.PlanarWalker` on dm_control's own
+`walker.xml` (0.0025 s physics steps, 0.025 s control steps = 10 substeps,
+25 s = 1,000 control steps). Reset draws every limited joint uniformly in its
+range and the unlimited `rooty` hinge uniformly in [-π, π] (dm_control's joint
+randomizer); the root slides stay at 0. Observation: `orientations` = the xx, xz
+entries of `xmat` for every body but the world, `height` = torso z, `velocity` =
+qvel. Reward: standing (torso height) and uprightness, times a linear speed
+term on the `torso_subtreelinvel` sensor for walk (1 m/s) and run (8 m/s).
+No deviation from dm_control; the only model edit is the `energy` flag.
+"""
+
+from __future__ import annotations
+
+import collections
+import functools
+
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from dmcr_jax.models import randomizers
+from dmcr_jax.models.base import TaskSpec
+from dmcr_jax.models.rewards import tolerance
+
+_DEFAULT_TIME_LIMIT = 25
+_CONTROL_TIMESTEP = .025
+_STAND_HEIGHT = 1.2
+_WALK_SPEED = 1
+_RUN_SPEED = 8
+
+
+def _sensor(m, d, name):
+  i = randomizers.obj_id(m, mujoco.mjtObj.mjOBJ_SENSOR, name)
+  adr, dim = int(np.asarray(m.sensor_adr)[i]), int(np.asarray(m.sensor_dim)[i])
+  return d.sensordata[adr:adr + dim]
+
+
+def _body(m, name):
+  return randomizers.obj_id(m, mujoco.mjtObj.mjOBJ_BODY, name)
+
+
+def _torso_upright(m, d):
+  return d.xmat[_body(m, "torso"), 2, 2]
+
+
+def _torso_height(m, d):
+  return d.xpos[_body(m, "torso"), 2]
+
+
+def _horizontal_velocity(m, d):
+  return _sensor(m, d, "torso_subtreelinvel")[0]
+
+
+def _initialize(key, m, d):
+  qpos = randomizers.randomize_limited_and_rotational_joints(key, m, d.qpos)
+  return d.replace(qpos=qpos), {}
+
+
+def _observation(m, d, info):
+  del info
+  return collections.OrderedDict(
+      orientations=d.xmat[1:, 0, [0, 2]].ravel(),
+      height=_torso_height(m, d),
+      velocity=d.qvel)
+
+
+def _reward(m, d, info, move_speed: float):
+  del info
+  standing = tolerance(_torso_height(m, d), bounds=(_STAND_HEIGHT, float("inf")),
+                       margin=_STAND_HEIGHT / 2)
+  upright = (1 + _torso_upright(m, d)) / 2
+  stand_reward = (3 * standing + upright) / 4
+  if move_speed == 0:
+    return stand_reward
+  move_reward = tolerance(_horizontal_velocity(m, d),
+                          bounds=(move_speed, float("inf")),
+                          margin=move_speed / 2, value_at_margin=0.5,
+                          sigmoid="linear")
+  return stand_reward * (5 * move_reward + 1) / 6
+
+
+def _spec(task: str, move_speed: float) -> TaskSpec:
+  return TaskSpec(
+      domain="walker", task=task, initialize=_initialize,
+      observation=_observation,
+      reward=functools.partial(_reward, move_speed=move_speed),
+      control_timestep=_CONTROL_TIMESTEP, time_limit=_DEFAULT_TIME_LIMIT)
+
+
+TASKS = {
+    "stand": _spec("stand", 0),
+    "walk": _spec("walk", _WALK_SPEED),
+    "run": _spec("run", _RUN_SPEED),
+}
