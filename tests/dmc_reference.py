@@ -28,6 +28,12 @@ class Records:
   obs: np.ndarray
   reward: np.ndarray
 
+  def take(self, index) -> "Records":
+    """The records at `index` (a slice or index array) of the leading axis."""
+    return Records(**{f.name: ({k: v[index] for k, v in getattr(self, f.name).items()}
+                               if f.name == "info" else getattr(self, f.name)[index])
+                      for f in dataclasses.fields(self)})
+
 
 def load_env(name: str, seed: int):
   domain, task = models.split_name(name)

@@ -10,11 +10,18 @@ For each of the 22 tasks:
   trajectory test, which steps the physics.
 - trajectory parity: from dm_control's initial states and the same 20 random
   actions, MJX (float32) stays within `TRAJECTORY_ATOL` of dm_control (float64).
-- protocol: the jitted, vmapped step is traced once; 1,000 random steps give
-  finite observations and `done` exactly at the time limit; `reset` repeats for
-  a key and differs across keys.
+- protocol: random steps keep the state finite and its shapes and dtypes (so a
+  jitted step is traced once), with `done` exactly at the time limit (a full
+  1,000-step episode per physics); `reset` repeats for a key and differs
+  across keys.
 
-Each task's tests share one set of compiled functions (xdist group per task).
+Compile time dominates on CPU, so the tests run `reset` and `step` as their two
+parts (`Task.reset = first_state ∘ forward ∘ initialize`,
+`Task.step = next_state ∘ advance`): the physics parts are compiled once per
+physics (`Task.physics_key`, shared by the tasks of a domain) and only the cheap
+task parts once per task. `test_composed_matches_task` checks on one domain
+that the jitted `Task.reset`/`Task.step` give the same states as the parts.
+Each domain's tests run in one xdist group, so they share those compilations.
 """
 
 from __future__ import annotations
@@ -36,45 +43,88 @@ from tests import dmc_reference
 # looser entries say why.
 TRAJECTORY_ATOL = {
     "default": 1e-3,
+    # Capsule–capsule contact with elliptic cones (fingertip hits the spinner):
+    # MJX's contact forces differ from MuJoCo C's; f64 MJX drifts the same
+    # (1.2e-3 at contact onset, 2.8e-2 rad/s in the hinge velocity after a
+    # second hit); more solver iterations do not change it. f32: 2.7e-2.
+    "finger": 5e-2,
+    "humanoid": 1e-2,  # f32: 6.7e-3 qvel spike at a contact onset; f64 MJX: 4.3e-4
     "walker": 2e-2,  # f32 contact drift 2e-5 -> 4.7e-3 over 20 steps; f64 MJX: 1e-12
 }
 
 STATE_ATOL = 1e-4
 
+# Every jitted call uses this batch size, so each function compiles once.
+B = 4
+
+
+@functools.cache
+def physics(key: tuple) -> "Physics":
+  return Physics(key)
+
+
+class Physics:
+  """The jitted, vmapped physics parts, compiled once per `Task.physics_key`."""
+
+  def __init__(self, key: tuple):
+    domain = key[0]
+    task = next(t for t in (models.load(f"{domain}-{n}")
+                            for n in models.DOMAIN_TASKS[domain])
+                if t.physics_key == key)
+    m = task.mjx_model
+    self.traces = 0
+
+    def counted_advance(data, action):
+      self.traces += 1
+      return task.advance(data, action)
+
+    def counted_forward(data):
+      self.traces += 1
+      return task.forward(data)
+
+    self.forward = jax.jit(jax.vmap(counted_forward))
+    self.advance = jax.jit(jax.vmap(counted_advance))
+    self.sync = jax.jit(jax.vmap(lambda d: base.sync(m, d)))
+    self.blank = jax.vmap(lambda _: mjx.make_data(m))(jnp.zeros(B))
+
 
 class Harness:
-  """One task's compiled functions, shared by its tests."""
+  """One task's jitted parts, composed with its domain's shared physics."""
 
   def __init__(self, name: str):
-    self.task = models.load(name)
+    self.task = task = models.load(name)
+    self.physics = physics(task.physics_key)
     self.traces = 0
-    task = self.task
 
-    def counted_step(state, action):
+    def counted_next_state(state, data):
       self.traces += 1
-      return task.step(state, action)
+      return task.next_state(state, data)
 
-    self.step = jax.jit(jax.vmap(counted_step))
-    self.reset = jax.jit(jax.vmap(task.reset))
+    self.initialize = jax.jit(jax.vmap(task.initialize))
+    self.first_state = jax.jit(jax.vmap(task.first_state))
+    self.next_state = jax.jit(jax.vmap(counted_next_state))
+    self.observe = jax.jit(jax.vmap(task.observe))
 
-    def from_records(qpos, qvel, act, ctrl, sensordata, warm, info):
-      m = task.mjx_model
-      d = mjx.make_data(m).replace(qpos=qpos, qvel=qvel, act=act, ctrl=ctrl,
-                                   sensordata=sensordata, qacc_warmstart=warm)
-      d = base.sync(m, d)
-      obs = base.flatten_observation(task.spec.observation(m, d, info))
-      reward = task.spec.reward(m, d, info)
-      return base.State(data=d, obs=obs, reward=jnp.asarray(reward, jnp.float32),
-                        done=jnp.zeros((), bool), step_count=jnp.zeros((), jnp.int32),
-                        info=info)
+  def reset(self, keys: jax.Array) -> base.State:
+    data, info = self.initialize(keys)
+    return self.first_state(self.physics.forward(data), info)
 
-    self.from_records = jax.jit(jax.vmap(from_records))
+  def step(self, state: base.State, action) -> base.State:
+    return self.next_state(state, self.physics.advance(state.data, action))
 
   def states(self, rec: dmc_reference.Records) -> base.State:
+    """dm_control's recorded states as synced `State`s with their obs/reward."""
     f32 = lambda x: jnp.asarray(x, jnp.float32)
-    return self.from_records(f32(rec.qpos), f32(rec.qvel), f32(rec.act), f32(rec.ctrl),
-                             f32(rec.sensordata), f32(rec.qacc_warmstart),
-                             {k: f32(v) for k, v in rec.info.items()})
+    data = self.physics.blank.replace(qpos=f32(rec.qpos), qvel=f32(rec.qvel), act=f32(rec.act),
+                        ctrl=f32(rec.ctrl), sensordata=f32(rec.sensordata),
+                        qacc_warmstart=f32(rec.qacc_warmstart))
+    data = self.physics.sync(data)
+    info = {k: f32(v) for k, v in rec.info.items()}
+    obs, reward = self.observe(data, info)
+    n = len(rec.reward)
+    return base.State(data=data, obs=obs, reward=reward,
+                      done=jnp.zeros((n,), bool), step_count=jnp.zeros((n,), jnp.int32),
+                      info=info)
 
 
 @functools.cache
@@ -82,7 +132,8 @@ def harness(name: str) -> Harness:
   return Harness(name)
 
 
-PARAMS = [pytest.param(n, marks=pytest.mark.xdist_group(n)) for n in models.ALL_TASKS]
+PARAMS = [pytest.param(n, marks=pytest.mark.xdist_group(models.split_name(n)[0]))
+          for n in models.ALL_TASKS]
 
 
 @pytest.mark.parametrize("name", PARAMS)
@@ -90,7 +141,8 @@ def test_state_parity(name):
   h = harness(name)
   rec = dmc_reference.random_rollout_states(name, n_states=200)
   assert len(rec.reward) == 200
-  s = h.states(rec)
+  chunks = [h.states(rec.take(slice(i, i + B))) for i in range(0, 200, B)]
+  s = jax.tree.map(lambda *x: jnp.concatenate(x), *chunks)
   assert s.obs.shape == rec.obs.shape, (s.obs.shape, rec.obs.shape)
   obs_err = np.abs(np.asarray(s.obs, np.float64) - rec.obs)
   rew_err = np.abs(np.asarray(s.reward, np.float64) - rec.reward)
@@ -106,7 +158,7 @@ def test_trajectory_parity(name):
   h = harness(name)
   task = h.task
   rng = np.random.RandomState(1)
-  B, T = 4, 20
+  T = 20
   actions = rng.uniform(task.action_low, task.action_high, (T, B, task.action_size))
   init, steps = dmc_reference.trajectories(name, actions, seeds=range(B))
   s = h.states(init)
@@ -124,43 +176,79 @@ def test_trajectory_parity(name):
   assert max(errs) <= atol, f"drift per step: {np.array2string(np.array(errs), precision=2)}"
 
 
+def _types(tree) -> list[tuple]:
+  return [(x.shape, x.dtype, jax.typeof(x).weak_type) for x in jax.tree.leaves(tree)]
+
+
+def _first_of_its_physics(task) -> bool:
+  domain = task.spec.domain
+  return next(n for n in models.DOMAIN_TASKS[domain]
+              if models.load(f"{domain}-{n}").physics_key == task.physics_key
+              ) == task.spec.task
+
+
 @pytest.mark.parametrize("name", PARAMS)
-def test_random_steps_finite_and_time_limit(name):
+def test_random_episode(name):
+  """Random actions keep the state finite and its types fixed; done at the limit.
+
+  The step's jitted parts (`advance` shared by the physics, `next_state` per
+  task) are each traced once.
+
+  The first task of each physics group runs a full episode (1,000 steps); the
+  others, whose physics is the same, run 50 steps from their own reset.
+  """
   h = harness(name)
   task = h.task
-  B = 4
   s = h.reset(jax.random.split(jax.random.key(3), B))
-  key = jax.random.key(4)
-  finite = jnp.array(True)
-  done_early = jnp.array(False)
-  for t in range(task.time_limit):
-    key, k = jax.random.split(key)
-    a = jax.random.uniform(k, (B, task.action_size), minval=task.action_low,
-                           maxval=task.action_high)
-    s = h.step(s, a)
-    finite &= jnp.all(jnp.isfinite(s.obs)) & jnp.all(jnp.isfinite(s.reward))
-    if t < task.time_limit - 1:
-      done_early |= jnp.any(s.done)
-  assert bool(finite)
-  assert not bool(done_early)
-  assert bool(jnp.all(s.done))
+  structure, types = jax.tree.structure(s), _types(s)
+  steps = task.time_limit if _first_of_its_physics(task) else 50
+  rng = np.random.RandomState(4)
+  actions = rng.uniform(task.action_low, task.action_high,
+                        (steps, B, task.action_size)).astype(np.float32)
+  for t in range(steps):
+    s = h.step(s, actions[t])
+    obs, reward, done = jax.device_get((s.obs, s.reward, s.done))
+    assert np.isfinite(obs).all() and np.isfinite(reward).all(), f"step {t}"
+    assert done.all() == (t == task.time_limit - 1) and done.all() == done.any(), t
+  # Same structure, shapes, dtypes and weak types: a jitted step traces once.
+  assert jax.tree.structure(s) == structure
+  assert _types(s) == types
+  # advance and forward, each once for all the tasks of the physics group.
+  assert h.traces == 1 and h.physics.traces == 2
   assert task.time_limit == 1000
 
 
 @pytest.mark.parametrize("name", PARAMS)
-def test_step_traced_once_and_reset_keys(name):
+def test_reset_repeats_for_a_key_and_differs_across_keys(name):
   h = harness(name)
-  B = 4
-  s1 = h.reset(jax.random.split(jax.random.key(7), B))
-  s2 = h.reset(jax.random.split(jax.random.key(7), B))
+  keys = jax.random.split(jax.random.key(7), B)
+  s1, s2 = h.reset(keys), h.reset(keys)
   np.testing.assert_array_equal(np.asarray(s1.obs), np.asarray(s2.obs))
   np.testing.assert_array_equal(np.asarray(s1.data.qpos), np.asarray(s2.data.qpos))
   q = np.asarray(s1.data.qpos)
-  assert all(not np.array_equal(q[0], q[i]) for i in range(1, B))
-  a = jnp.zeros((B, h.task.action_size))
-  s1 = h.step(s1, a)
-  s1 = h.step(s1, a + 0.1)
-  assert h.traces == 1
+  assert all(not np.array_equal(q[0], q[i]) for i in range(1, len(q)))
+
+
+@pytest.mark.xdist_group("cartpole")
+def test_composed_matches_task():
+  """The jitted `Task.reset`/`Task.step` equal the tests' composed parts."""
+  h = harness("cartpole-swingup")
+  task = h.task
+  traces = []
+
+  def counted_step(state, action):
+    traces.append(1)
+    return task.step(state, action)
+
+  step = jax.jit(jax.vmap(counted_step))
+  keys = jax.random.split(jax.random.key(5), B)
+  s, r = jax.jit(jax.vmap(task.reset))(keys), h.reset(keys)
+  for t in range(3):
+    for a, b in zip(jax.tree.leaves(s), jax.tree.leaves(r)):
+      np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    action = jnp.full((B, task.action_size), 0.3 * t - 0.4)
+    s, r = step(s, action), h.step(r, action)
+  assert len(traces) == 1
 
 
 @pytest.mark.parametrize("name", PARAMS)

@@ -47,11 +47,16 @@ def spec(name: str) -> "TaskSpec":
   return module.TASKS[task]
 
 
-def load(name: str) -> "Task":
-  """Builds (once per process, cached) the `Task` called `name`.
+def load(name: str, solver_iterations: int | None = None,
+         ls_iterations: int | None = None) -> "Task":
+  """Builds (once per process and arguments, cached) the `Task` called `name`.
 
   Args:
     name: one of `ALL_TASKS`, e.g. "walker-walk".
+    solver_iterations, ls_iterations: override the constraint solver's
+      iteration budgets. None (the default) keeps dm_control's, which the parity
+      tests check; smaller budgets run faster but drift from dm_control (see
+      `dmcr_jax.models.base`).
 
   Returns:
     A `Task` with pure, jittable `reset(key)` and `step(state, action)`.
@@ -60,7 +65,7 @@ def load(name: str) -> "Task":
     ValueError: if `name` is not a registered task (the message lists them).
   """
   from dmcr_jax.models.base import build_task
-  return build_task(spec(name))
+  return build_task(spec(name), solver_iterations, ls_iterations)
 
 
 def __getattr__(name):

@@ -18,6 +18,14 @@ form ``"<model field>:<element name>"`` (e.g. ``"geom_pos:target"``). They never
 touch the physics (those elements do not collide) and a renderer applies them by
 writing `model.<field>[<id of name>] = value`.
 
+Solver budget: by default the constraint solver keeps dm_control's settings (the
+model's `opt.iterations` / `opt.ls_iterations`, e.g. 100 / 50, stopping early at
+`opt.tolerance`), so trajectories track dm_control. Under `vmap` MJX's solver loop
+runs until the slowest env of the batch stops, so this budget sets the speed: on an
+H100 walker steps 0.43 M physics steps/s at 8,192 envs with dm_control's budget and
+7.6 M with `mjx.benchmark`'s 1 / 4 (benchmarks/results/physics_h100*.md).
+`load(name, solver_iterations=..., ls_iterations=...)` trades fidelity for speed.
+
 Non-finite actions: `step` cannot raise inside `jit`, so NaN entries become 0 and
 ±inf become the nearest bound (after `jnp.nan_to_num` and clipping); the
 observation is never NaN because of an action. Host-side wrappers (the env)
@@ -81,9 +89,11 @@ class TaskSpec:
     time_limit: episode length in seconds (dm_control's default time limit).
     model_variables: `(field, name)` pairs of model entries that the task
       randomises per episode; each is kept in `info["field:name"]`.
-    mjx_fix: optional `(mujoco.MjModel) -> None` that edits the model in place
-      to make it simulable in MJX without changing its dynamics (documented in
-      the domain module).
+    model_edit: optional `(mujoco.MjModel) -> None` that edits the compiled
+      model in place: either a fix that lets MJX simulate it without changing
+      its dynamics, or a constant that the dm_control task writes into the
+      model every episode (documented in the domain module). Tasks with the
+      same domain and `model_edit` share their physics.
   """
   domain: str
   task: str
@@ -93,7 +103,7 @@ class TaskSpec:
   control_timestep: float | None = None
   time_limit: float = 1000.0
   model_variables: tuple[tuple[str, str], ...] = ()
-  mjx_fix: Callable[[mujoco.MjModel], None] | None = None
+  model_edit: Callable[[mujoco.MjModel], None] | None = None
 
   @property
   def name(self) -> str:
@@ -110,13 +120,13 @@ def load_mj_model(spec: TaskSpec) -> mujoco.MjModel:
 
   The only edits are those that MJX needs and that leave the dynamics unchanged:
   the `energy` flag is switched off (it only computes diagnostics), and the
-  domain's own `mjx_fix`, if any.
+  task's own `model_edit`, if any.
   """
   xml, assets = _suite_module(spec.domain).get_model_and_assets()
   model = mujoco.MjModel.from_xml_string(xml, assets)
   model.opt.enableflags &= ~int(mujoco.mjtEnableBit.mjENBL_ENERGY)
-  if spec.mjx_fix is not None:
-    spec.mjx_fix(model)
+  if spec.model_edit is not None:
+    spec.model_edit(model)
   return model
 
 
@@ -174,10 +184,18 @@ class Task:
     observation_size, action_size: flat sizes.
   """
 
-  def __init__(self, spec: TaskSpec):
+  def __init__(self, spec: TaskSpec, solver_iterations: int | None = None,
+               ls_iterations: int | None = None):
     self.spec = spec
     self.name = spec.name
     self.mj_model = load_mj_model(spec)
+    for field, value in (("iterations", solver_iterations), ("ls_iterations", ls_iterations)):
+      if value is not None:
+        if not isinstance(value, (int, np.integer)) or value < 1:
+          raise ValueError(f"{field} must be a positive int or None (dm_control's), got {value!r}")
+        setattr(self.mj_model.opt, field, int(value))
+    self.solver_iterations = int(self.mj_model.opt.iterations)
+    self.ls_iterations = int(self.mj_model.opt.ls_iterations)
     self.mjx_model = mjx.put_model(self.mj_model)
     dt = float(self.mj_model.opt.timestep)
     if spec.control_timestep is None:
@@ -197,22 +215,24 @@ class Task:
     self.model_variable_ids = {
         f"{field}:{name}": (field, _model_id(self.mj_model, field, name))
         for field, name in spec.model_variables}
-    state = jax.eval_shape(self.reset, jax.random.key(0))
+    # Shapes only: `forward` does not change them, so it is not traced here.
+    initial = jax.eval_shape(self.initialize, jax.random.key(0))
     names: list[str] = []
 
-    def parts(s):  # a list keeps dm_control's order (pytree dicts are key-sorted)
-      obs = spec.observation(self.mjx_model, s.data, s.info)
+    def parts(data, info):  # a list keeps dm_control's order (dicts get key-sorted)
+      obs = spec.observation(self.mjx_model, data, info)
       names[:] = list(obs)
       return list(obs.values())
 
-    shapes = jax.eval_shape(parts, state)
+    shapes = jax.eval_shape(parts, *initial)
     self.observation_shapes = {k: tuple(v.shape) for k, v in zip(names, shapes)}
-    self.observation_size = int(state.obs.shape[0])
+    self.observation_size = int(sum(np.prod(v.shape, dtype=int) for v in shapes))
 
   def __repr__(self):
     return (f"Task({self.name!r}, obs={self.observation_size}, "
             f"act={self.action_size}, n_sub_steps={self.n_sub_steps}, "
-            f"time_limit={self.time_limit})")
+            f"time_limit={self.time_limit}, solver={self.solver_iterations}/"
+            f"{self.ls_iterations})")
 
   # The protocol -------------------------------------------------------------
 
@@ -225,14 +245,8 @@ class Task:
     Returns:
       The initial `State` with reward 0 and step_count 0.
     """
-    m = self.mjx_model
-    d = mjx.make_data(m)
-    d, info = self.spec.initialize(key, m, d)
-    d = mjx.forward(m, d)
-    obs = flatten_observation(self.spec.observation(m, d, info))
-    return State(data=d, obs=obs, reward=jnp.zeros((), jnp.float32),
-                 done=jnp.zeros((), bool), step_count=jnp.zeros((), jnp.int32),
-                 info=info)
+    data, info = self.initialize(key)
+    return self.first_state(self.forward(data), info)
 
   def step(self, state: State, action: jax.Array) -> State:
     """Advances one control step.
@@ -245,16 +259,62 @@ class Task:
     Returns:
       The next `State`.
     """
+    return self.next_state(state, self.advance(state.data, action))
+
+  # The parts of reset and step ----------------------------------------------
+  #
+  # `reset` and `step` compose a task part (cheap: initial-state sampling,
+  # observation, reward) with a physics part (`forward`, `advance`) that depends
+  # only on `physics_key`, so tools that batch several tasks of one domain (and
+  # the tests) can compile the physics once per domain.
+
+  @property
+  def physics_key(self) -> tuple:
+    """Tasks with equal keys have identical `forward` and `advance`."""
+    return (self.spec.domain, self.spec.model_edit, self.n_sub_steps,
+            self.solver_iterations, self.ls_iterations)
+
+  def initialize(self, key: jax.Array) -> tuple[mjx.Data, Info]:
+    """The task's initial-state draw on fresh data (before `forward`).
+
+    The data keeps `mjx.make_data`'s dtypes exactly (no weak types), so every
+    task of a physics group hands `forward` the same types: it compiles once.
+    """
+    fresh = mjx.make_data(self.mjx_model)
+    data, info = self.spec.initialize(key, self.mjx_model, fresh)
+    data = jax.tree.map(lambda x, ref: jnp.asarray(x, ref.dtype), data, fresh)
+    return data, {k: jnp.asarray(v, jnp.result_type(v)) for k, v in info.items()}
+
+  def forward(self, data: mjx.Data) -> mjx.Data:
+    """`mj_forward`: every stage, as dm_control runs after `initialize_episode`."""
+    return mjx.forward(self.mjx_model, data)
+
+  def first_state(self, data: mjx.Data, info: Info) -> State:
+    """The `State` right after reset, from forwarded data and task variables."""
+    obs, _ = self.observe(data, info)
+    return State(data=data, obs=obs, reward=jnp.zeros((), jnp.float32),
+                 done=jnp.zeros((), bool), step_count=jnp.zeros((), jnp.int32),
+                 info=info)
+
+  def advance(self, data: mjx.Data, action: jax.Array) -> mjx.Data:
+    """The physics of one control step: clip the action, step, then `sync`."""
     m = self.mjx_model
     action = jnp.nan_to_num(jnp.asarray(action, jnp.float32), nan=0.0)
     action = jnp.clip(action, self.action_low, self.action_high)
-    d = state.data.replace(ctrl=action)
-    d = physics_steps(m, d, self.n_sub_steps)
-    d = sync(m, d)
-    obs = flatten_observation(self.spec.observation(m, d, state.info))
-    reward = jnp.asarray(self.spec.reward(m, d, state.info), jnp.float32)
+    data = physics_steps(m, data.replace(ctrl=action), self.n_sub_steps)
+    return sync(m, data)
+
+  def observe(self, data: mjx.Data, info: Info) -> tuple[jax.Array, jax.Array]:
+    """The flat float32 observation and the float32 reward of synced `data`."""
+    m = self.mjx_model
+    obs = flatten_observation(self.spec.observation(m, data, info))
+    return obs, jnp.asarray(self.spec.reward(m, data, info), jnp.float32)
+
+  def next_state(self, state: State, data: mjx.Data) -> State:
+    """The `State` after `state` once the physics has advanced to `data`."""
+    obs, reward = self.observe(data, state.info)
     count = state.step_count + 1
-    return state.replace(data=d, obs=obs, reward=reward,
+    return state.replace(data=data, obs=obs, reward=reward,
                          done=count >= self.time_limit, step_count=count)
 
   # Helpers for tests, renderers and converters --------------------------------
@@ -274,10 +334,12 @@ class Task:
 
 
 @functools.cache
-def _cached_task(spec: TaskSpec) -> Task:
-  return Task(spec)
+def _cached_task(spec: TaskSpec, solver_iterations: int | None,
+                 ls_iterations: int | None) -> Task:
+  return Task(spec, solver_iterations, ls_iterations)
 
 
-def build_task(spec: TaskSpec) -> Task:
-  """Builds (once per spec, cached) the `Task` for a `TaskSpec`."""
-  return _cached_task(spec)
+def build_task(spec: TaskSpec, solver_iterations: int | None = None,
+               ls_iterations: int | None = None) -> Task:
+  """Builds (once per spec and solver budget, cached) the `Task` for a `TaskSpec`."""
+  return _cached_task(spec, solver_iterations, ls_iterations)
