@@ -1,0 +1,33 @@
+"""Visual seeds for DMCR: batched `VisualParams`, texture banks, render models.
+
+A visual seed (an int in [0, 2**31)) fixes a look; seed 0 is dm_control's.
+`sample(domain, seeds, vary)` turns a batch of seeds into `VisualParams`
+(jittable, one random stream per factor, bit-identical on every backend);
+`build_render_model(domain)` compiles dm_control's model plus the texture bank
+(procedural, built once and cached on disk, or a user's image folders);
+`prepare`/`apply` write one env's look into that MuJoCo model cheaply, and
+`render_frame` / `FrameRenderer` draw one frame with `mujoco.Renderer` — the
+reference that batched render pools match. `dmcr-show` renders a grid of looks.
+
+Modules: `factors` (names, Table 5), `ranges` (per-domain data), `params`
+(`VisualParams`, `sample`), `textures` (banks), `render_model` (render model,
+apply, reference renderer), `show` (the `dmcr-show` command).
+"""
+
+from dmcr_jax.visuals.factors import (APPLICABLE, DOMAINS, FACTOR_IDS, FACTORS,
+                                      active_factors, parse_vary)
+from dmcr_jax.visuals.params import VisualParams, check_seeds, defaults, sample
+from dmcr_jax.visuals.render_model import (FrameRenderer, Looks, RenderModel,
+                                           apply, build_render_model,
+                                           close_renderers, prepare,
+                                           render_frame, set_skybox)
+from dmcr_jax.visuals.textures import (NUM_BACKGROUNDS, NUM_FLOORS, TextureBank,
+                                       cache_dir, load_bank)
+
+__all__ = [
+    "APPLICABLE", "DOMAINS", "FACTORS", "FACTOR_IDS", "FrameRenderer", "Looks",
+    "NUM_BACKGROUNDS", "NUM_FLOORS", "RenderModel", "TextureBank",
+    "VisualParams", "active_factors", "apply", "build_render_model",
+    "cache_dir", "check_seeds", "close_renderers", "defaults", "load_bank",
+    "parse_vary", "prepare", "render_frame", "sample", "set_skybox",
+]

@@ -295,7 +295,10 @@ class WorkerPool:
     return self.output[:batch]
 
   def _send(self, w: int, a: int, b: int) -> None:
-    self._conns[w].send(("render", self._call_id, a, b))
+    try:
+      self._conns[w].send(("render", self._call_id, a, b))
+    except (BrokenPipeError, ConnectionResetError):
+      pass  # the worker died before this call: its sentinel triggers the retry
 
   def _retry(self, w: int, pending: dict, tries: dict, why: str) -> None:
     tries[w] += 1

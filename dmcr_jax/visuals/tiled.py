@@ -32,7 +32,7 @@ import numpy as np
 # preset -> (shadow map size or None to keep the model's, shadows on, reflections on)
 QUALITY: dict[str, tuple[int | None, bool, bool]] = {
     "exact": (None, True, True),
-    "fast": (512, True, False),
+    "fast": (256, True, False),
     "fastest": (None, False, False),
 }
 
