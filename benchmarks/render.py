@@ -1,0 +1,134 @@
+"""Render throughput: `RenderPool` frames/s against a naive `mujoco.Renderer` loop.
+
+For walker (default) with every visual factor varying (one visual seed per env)
+and random states, it measures, in one run:
+- the baseline: one `mujoco.Renderer` in this process, one `render()` per frame,
+  the look applied per frame (`render_model.FrameRenderer`);
+- the pool at each (batch, workers, quality): frames/s of `RenderPool.render`
+  (the median of `--repeats` calls after a warm-up call); start-up time apart.
+
+    python -m benchmarks.render --batches 64,256,1024,4096 --workers 1,4,8,16 \
+        --qualities exact,fast,fastest --out benchmarks/results/render_h100.jsonl
+
+One JSON line per row (device, GL backend, cpus, sizes, frames/s, speed-up over
+the baseline) and a Markdown table beside the JSONL file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+
+import numpy as np
+
+
+def _gpu_name() -> str:
+  try:
+    import subprocess
+    out = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"],
+                         capture_output=True, text=True, timeout=10).stdout.strip()
+    return out.splitlines()[0] if out else "none"
+  except Exception:  # noqa: BLE001 - no GPU tools
+    return "none"
+
+
+def _inputs(rm, n: int, seed: int = 0):
+  rng = np.random.default_rng(seed)
+  looks = rm.sample(np.arange(1, n + 1), vary="all")
+  qpos = rm.model.qpos0 + 0.2 * rng.standard_normal((n, rm.model.nq))
+  return qpos, looks
+
+
+def baseline(task: str, frames: int, size: int) -> float:
+  """Frames/s of one `mujoco.Renderer` rendering frame by frame."""
+  from dmcr_jax.visuals import render_model as rmod
+  rm = rmod.build_render_model(task)
+  qpos, looks = _inputs(rm, frames)
+  looks = rmod.prepare(rm, looks)
+  fr = rmod.FrameRenderer(rm, size, size)
+  fr.render(looks, qpos[0])
+  t0 = time.perf_counter()
+  for i in range(frames):
+    fr.render(looks, qpos[i], index=i)
+  dt = time.perf_counter() - t0
+  fr.close()
+  return frames / dt
+
+
+def bench_pool(task: str, batch: int, workers: int, quality: str, size: int,
+               repeats: int) -> dict:
+  from dmcr_jax.visuals import render_model as rmod
+  from dmcr_jax.visuals.render_pool import RenderPool
+  t0 = time.perf_counter()
+  with RenderPool(task, max_batch=batch, height=size, width=size, workers=workers,
+                  quality=quality) as pool:
+    start_s = time.perf_counter() - t0
+    qpos, looks = _inputs(pool.rm, batch)
+    looks = rmod.prepare(pool.rm, looks)
+    pool.render(qpos, looks, copy_out=False)  # warm-up
+    times = []
+    for _ in range(repeats):
+      t0 = time.perf_counter()
+      pool.render(qpos, looks, copy_out=False)
+      times.append(time.perf_counter() - t0)
+    gl = pool.gl
+  run_s = statistics.median(times)
+  return dict(batch=batch, workers=workers, quality=quality, gl=gl, start_s=start_s,
+              run_s=run_s, frames_per_s=batch / run_s)
+
+
+def markdown(rows: list[dict]) -> str:
+  lines = ["| device | gl | quality | batch | workers | frames/s | × naive |",
+           "|---|---|---|---:|---:|---:|---:|"]
+  for r in rows:
+    lines.append(f"| {r['device']} | {r['gl']} | {r['quality']} | {r['batch']:,} | "
+                 f"{r['workers']} | {r['frames_per_s']:,.0f} | {r['speedup']:.1f} |")
+  return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> None:
+  argv = sys.argv[1:] if argv is None else argv
+  p = argparse.ArgumentParser(description="RenderPool frames/s against a naive loop.")
+  p.add_argument("--task", default="walker-walk")
+  p.add_argument("--size", type=int, default=84)
+  p.add_argument("--batches", default="64,256,1024")
+  p.add_argument("--workers", default="1,2")
+  p.add_argument("--qualities", default="exact")
+  p.add_argument("--repeats", type=int, default=3)
+  p.add_argument("--baseline-frames", type=int, default=300)
+  p.add_argument("--out", default=None)
+  args = p.parse_args(argv)
+  base_fps = baseline(args.task, args.baseline_frames, args.size)
+  common = dict(bench="render", device=_gpu_name(), cpus=os.cpu_count(),
+                host=platform.node(), task=args.task, size=args.size,
+                baseline_fps=base_fps, vary="all")
+  print(json.dumps(dict(common, kind="baseline")), flush=True)
+  rows = []
+  for quality in args.qualities.split(","):
+    for workers in [int(w) for w in args.workers.split(",")]:
+      for batch in [int(b) for b in args.batches.split(",")]:
+        row = dict(common, **bench_pool(args.task, batch, workers, quality, args.size,
+                                        args.repeats))
+        row["speedup"] = row["frames_per_s"] / base_fps
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+        if args.out:
+          os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
+          with open(args.out, "a") as f:
+            f.write(json.dumps(row) + "\n")
+  table = markdown(rows)
+  print(f"naive mujoco.Renderer loop: {base_fps:,.0f} frames/s\n{table}")
+  if args.out:
+    with open(os.path.splitext(args.out)[0] + ".md", "w") as f:
+      f.write(f"`python -m benchmarks.render {' '.join(argv)}`\n\n"
+              f"Naive loop (one mujoco.Renderer, one process): {base_fps:,.0f} frames/s\n\n")
+      f.write(table)
+
+
+if __name__ == "__main__":
+  main()

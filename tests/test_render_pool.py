@@ -1,0 +1,101 @@
+"""RenderPool: bit-identical to the single-frame reference, robust to a killed worker."""
+
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from dmcr_jax.visuals import render_model as rmod
+from dmcr_jax.visuals.render_pool import RenderPool
+
+pytestmark = pytest.mark.xdist_group("render_pool")
+
+
+@pytest.fixture(scope="module")
+def pool():
+  with RenderPool("reacher-easy", max_batch=16, workers=2) as p:
+    yield p
+
+
+def _inputs(rm, n, seed=0):
+  rng = np.random.default_rng(seed)
+  looks = rm.sample(np.arange(n) * 13 + seed, vary="all")
+  qpos = rm.model.qpos0 + rng.uniform(-1, 1, (n, rm.model.nq))
+  target = np.concatenate([rng.uniform(-.2, .2, (n, 2)), np.full((n, 1), .01)], 1)
+  size = np.zeros((n, 3))
+  size[:, 0] = rng.uniform(.015, .05, n)
+  return qpos, looks, {"geom_pos:target": target, "geom_size:target": size}
+
+
+def _reference(rm, qpos, looks, variables):
+  fr = rmod.FrameRenderer(rm)
+  try:
+    return np.stack([fr.render(looks, qpos[i], index=i,
+                               model_variables={k: v[i] for k, v in variables.items()})
+                     for i in range(len(qpos))])
+  finally:
+    fr.close()
+
+
+def test_pixels_equal_reference_for_any_batch_size(pool):
+  qpos, looks, var = _inputs(pool.rm, 9)
+  ref = _reference(pool.rm, qpos, looks, var)
+  assert ref.std() > 5  # a real picture, not a blank frame
+  np.testing.assert_array_equal(pool.render(qpos, looks, var), ref)
+  # A different batch size moves frames to other workers and tiles.
+  np.testing.assert_array_equal(pool.render(qpos[:1], looks.take(0),
+                                            {k: v[:1] for k, v in var.items()}), ref[:1])
+  np.testing.assert_array_equal(
+      pool.render(qpos[3:], looks.take(slice(3, None)), {k: v[3:] for k, v in var.items()}),
+      ref[3:])
+
+
+def test_worker_count_does_not_change_pixels(pool):
+  qpos, looks, var = _inputs(pool.rm, 5, seed=1)
+  with RenderPool("reacher-easy", max_batch=8, workers=1) as single:
+    np.testing.assert_array_equal(single.render(qpos, looks, var),
+                                  pool.render(qpos, looks, var))
+
+
+def test_killed_worker_is_replaced(pool):
+  qpos, looks, var = _inputs(pool.rm, 6, seed=2)
+  want = pool.render(qpos, looks, var)
+  victim = pool.pids[1]
+  os.kill(victim, signal.SIGKILL)
+  time.sleep(0.2)
+  before = pool.restarts
+  np.testing.assert_array_equal(pool.render(qpos, looks, var), want)
+  assert pool.restarts == before + 1 and victim not in pool.pids
+
+
+def test_bad_inputs(pool):
+  qpos, looks, var = _inputs(pool.rm, 3)
+  with pytest.raises(ValueError, match="qpos must have shape"):
+    pool.render(qpos[:, :1], looks, var)
+  with pytest.raises(ValueError, match=r"batch size must be in \[1, 16\]"):
+    pool.render(np.zeros((17, pool.nq)), looks, var)
+  with pytest.raises(ValueError, match="got 3 looks for 2 envs"):
+    pool.render(qpos[:2], looks, {k: v[:2] for k, v in var.items()})
+  with pytest.raises(ValueError, match="geom_pos:target"):
+    pool.render(qpos, looks, {})
+  with pytest.raises(ValueError, match="osmesa"):
+    RenderPool("reacher-easy", max_batch=1, gl="vulkan")
+  with pytest.raises(ValueError, match="exact"):
+    RenderPool("reacher-easy", max_batch=1, quality="ultra")
+  with pytest.raises(ValueError, match="walker-walk"):
+    RenderPool("walker-fly", max_batch=1)
+  # The pool still works after bad calls.
+  assert pool.render(qpos, looks, var).shape == (3, 84, 84, 3)
+
+
+def test_close_leaves_nothing_behind():
+  p = RenderPool("reacher-easy", max_batch=2, workers=2)
+  pids = p.pids
+  names = [s.name for s in p._pool._segments]
+  p.close()
+  for pid in pids:
+    with pytest.raises(ProcessLookupError):
+      os.kill(pid, 0)
+  assert not any(os.path.exists(f"/dev/shm/{n}") for n in names)
