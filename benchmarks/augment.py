@@ -1,0 +1,156 @@
+"""Benchmark of `dmcr_jax.augment`: time per batch of 84×84×9 uint8 observations.
+
+For every name in `dmcr_jax.augment.NAMES` it compiles ``jax.jit(aug)`` for a
+batch of observations (and for an (obs, next_obs) pair), reports the compile
+time apart, then times calls with fresh keys, each ended by
+``block_until_ready``, and keeps the median (and the 10th/90th percentiles).
+One JSON line per augmentation goes to ``--out`` (default
+``benchmarks/results/augment_<device>.jsonl``, e.g. ``augment_cpu.jsonl``,
+``augment_h100.jsonl``) and a Markdown table next to it (same name, ``.md``).
+
+Usage::
+
+    python -m benchmarks.augment [--batch 256] [--out PATH] [--names drq,cj+drq]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import re
+import time
+
+import jax
+import numpy as np
+
+from dmcr_jax import augment
+
+
+def device_slug(device) -> str:
+  """A short file-name tag for a device: ``cpu``, ``h100``, ``a100``, …"""
+  if device.platform == "cpu":
+    return "cpu"
+  match = re.search(r"([A-Z]+\d{2,4})", device.device_kind)
+  return match.group(1).lower() if match else device.platform
+
+
+def _time_calls(fn, keys, images, min_time: float, min_reps: int, max_reps: int):
+  """Times ``fn(key, images)`` with successive keys; returns the times in seconds."""
+  for key in keys[:2]:  # warm-up
+    jax.block_until_ready(fn(key, images))
+  times = []
+  start = time.perf_counter()
+  for key in keys[2:]:
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(key, images))
+    times.append(time.perf_counter() - t0)
+    if len(times) >= max_reps or (len(times) >= min_reps
+                                  and time.perf_counter() - start > min_time):
+      break
+  return np.asarray(times)
+
+
+def bench_one(name: str, batch: int, size: int, stack: int, min_time: float,
+              min_reps: int, max_reps: int, seed: int = 0) -> dict:
+  """Compiles and times augmentation `name`; returns one result row.
+
+  Args:
+    name: an augmentation name (see `dmcr_jax.augment.NAMES`).
+    batch: batch size B.
+    size: image side (H = W).
+    stack: frames per observation (channels = 3·stack).
+    min_time: keep timing until this many seconds have passed …
+    min_reps: … and at least this many calls were timed,
+    max_reps: but never more than this many.
+    seed: seed of the random images and keys.
+
+  Returns:
+    A JSON-serialisable dict.
+  """
+  device = jax.devices()[0]
+  rng = np.random.default_rng(seed)
+  shape = (batch, size, size, 3 * stack)
+  obs = jax.device_put(rng.integers(0, 256, shape, dtype=np.uint8), device)
+  next_obs = jax.device_put(rng.integers(0, 256, shape, dtype=np.uint8), device)
+  keys = list(jax.random.split(jax.random.key(seed), max_reps + 2))
+  aug = augment.get(name)
+  row = {"name": name, "device_kind": device.device_kind, "platform": device.platform,
+         "jax": jax.__version__, "batch": batch, "shape": list(shape), "dtype": "uint8"}
+  for tag, images in (("", obs), ("pair_", (obs, next_obs))):
+    fn = jax.jit(aug)
+    t0 = time.perf_counter()
+    compiled = fn.lower(keys[0], images).compile()
+    row[f"{tag}compile_s"] = round(time.perf_counter() - t0, 3)
+    times = _time_calls(compiled, keys, images, min_time, min_reps, max_reps)
+    row[f"{tag}reps"] = int(times.size)
+    row[f"{tag}median_ms"] = round(float(np.median(times)) * 1e3, 4)
+    row[f"{tag}p10_ms"] = round(float(np.percentile(times, 10)) * 1e3, 4)
+    row[f"{tag}p90_ms"] = round(float(np.percentile(times, 90)) * 1e3, 4)
+  row["us_per_image"] = round(row["median_ms"] * 1e3 / batch, 3)
+  return row
+
+
+def markdown_table(rows: list[dict]) -> str:
+  """The rows as a Markdown table (one line per augmentation)."""
+  first = rows[0]
+  lines = [
+      f"Augmentation time per batch of {first['batch']} × "
+      f"{'×'.join(map(str, first['shape'][1:]))} uint8 on {first['device_kind']} "
+      f"({first['platform']}, jax {first['jax']}); median of timed calls, "
+      "block_until_ready; compile time apart.",
+      "",
+      "| augmentation | median ms (obs) | p10–p90 ms | µs / image | "
+      "median ms (obs, next_obs) | compile s |",
+      "|---|---:|---:|---:|---:|---:|",
+  ]
+  for r in rows:
+    lines.append(
+        f"| `{r['name']}` | {r['median_ms']:.3f} "
+        f"| {r['p10_ms']:.3f}–{r['p90_ms']:.3f} | {r['us_per_image']:.2f} "
+        f"| {r['pair_median_ms']:.3f} | {r['compile_s']:.2f} |")
+  return "\n".join(lines) + "\n"
+
+
+def main(argv=None):
+  """Command-line entry: benchmark every augmentation, write .jsonl and .md."""
+  parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+  parser.add_argument("--batch", type=int, default=256)
+  parser.add_argument("--size", type=int, default=84)
+  parser.add_argument("--stack", type=int, default=3)
+  parser.add_argument("--names", default=",".join(augment.NAMES),
+                      help="comma-separated names (default: all of augment.NAMES)")
+  parser.add_argument("--min-time", type=float, default=1.0,
+                      help="seconds of timed calls per measurement (at least)")
+  parser.add_argument("--min-reps", type=int, default=5)
+  parser.add_argument("--max-reps", type=int, default=200)
+  parser.add_argument("--out", default=None,
+                      help="JSONL path (default: "
+                           "benchmarks/results/augment_<device>.jsonl)")
+  args = parser.parse_args(argv)
+
+  out = args.out or os.path.join("benchmarks", "results",
+                                 f"augment_{device_slug(jax.devices()[0])}.jsonl")
+  os.makedirs(os.path.dirname(out) or ".", exist_ok=True)
+  rows = []
+  stamp = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+  with open(out, "w") as f:
+    for name in args.names.split(","):
+      row = bench_one(name, args.batch, args.size, args.stack, args.min_time,
+                      args.min_reps, args.max_reps)
+      row.update(cpu_count=os.cpu_count(), time_utc=stamp)
+      rows.append(row)
+      f.write(json.dumps(row) + "\n")
+      f.flush()
+      print(f"{name:>20s}  {row['median_ms']:9.3f} ms  "
+            f"(pair {row['pair_median_ms']:9.3f} ms)  "
+            f"compile {row['compile_s']:.2f} s", flush=True)
+  md = os.path.splitext(out)[0] + ".md"
+  with open(md, "w") as f:
+    f.write(markdown_table(rows))
+  print(f"wrote {out} and {md}")
+
+
+if __name__ == "__main__":
+  main()
