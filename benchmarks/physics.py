@@ -10,9 +10,13 @@ compile), run time is the median of `--repeats` calls after `block_until_ready`.
     python -m benchmarks.physics --tasks walker-walk --sizes 1,64,1024,8192
     python -m benchmarks.physics --tasks all --out benchmarks/results/physics_h100.jsonl
 
-Each row is one JSON line (device kind, task, N, steps, compile_s, run_s,
-physics_steps_per_s, and the baseline's numbers); a Markdown table is written
-next to the JSONL file.
+    python -m benchmarks.physics --tasks walker-walk --sizes 8192 \
+        --solver-iterations 1 --ls-iterations 4   # mjx.benchmark's solver budget
+
+Each row is one JSON line (device kind, task, N, steps, solver budget, compile_s,
+run_s, physics_steps_per_s, and the baseline's numbers); a Markdown table is
+written next to the JSONL file. Runs append to `--out` and skip what is there, so
+a sweep cut off by a time limit resumes where it stopped.
 """
 
 from __future__ import annotations
@@ -80,34 +84,46 @@ def bare_rollout(task: models.Task, n: int, k: int):
   return fn
 
 
-def bench_task(name: str, sizes: list[int], k: int, repeats: int, baseline: bool,
-               parallel_compiles: int = 1) -> list[dict]:
-  """Benchmarks one task at every batch size; returns one row per size.
+def _row(task: models.Task, n: int, k: int, parallel_compiles: int) -> dict:
+  return dict(
+      bench="physics", device=jax.devices()[0].device_kind,
+      platform=jax.default_backend(), host=platform.node(), cpus=os.cpu_count(),
+      task=task.name, num_envs=n, control_steps=k, n_sub_steps=task.n_sub_steps,
+      solver_iterations=task.solver_iterations, ls_iterations=task.ls_iterations,
+      concurrent_compiles=max(1, parallel_compiles),
+      xla_flags=os.environ.get("XLA_FLAGS", ""),
+      time_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
 
-  The reset is compiled once at the largest size and sliced for smaller ones.
-  With `parallel_compiles > 1` the XLA compilations of all sizes run in threads
-  at once (their compile times then include that contention; rows say so).
+
+def bench_tasks(names: list[str], sizes: list[int], k: int, repeats: int, baseline: bool,
+                parallel_compiles: int = 1, solver: tuple = (None, None)) -> list[dict]:
+  """Benchmarks several tasks at every batch size; returns one row per (task, size).
+
+  Each task's reset is compiled once at the largest size and sliced for smaller
+  ones. All XLA compilations (resets, then rollouts) run in `parallel_compiles`
+  threads at once (compile times then include that contention; rows say so);
+  the timed runs happen afterwards, one at a time.
   """
-  task = models.load(name)
-  full = jax.jit(jax.vmap(task.reset))(jax.random.split(jax.random.key(0), max(sizes)))
+  tasks = [models.load(name, *solver) for name in names]
   key = jax.random.key(1)
-  jobs = []
-  for n in sizes:
-    state = jax.tree.map(lambda x: x[:n], full)
-    jobs.append((n, "task", task_rollout(task, n, k), state))
-    if baseline:
-      jobs.append((n, "bare", bare_rollout(task, n, k), state.data))
   with ThreadPoolExecutor(max(1, parallel_compiles)) as pool:
-    compiled = list(pool.map(lambda j: _compile(j[2], j[3], key), jobs))
+    resets = list(pool.map(
+        lambda t: _compile(jax.vmap(t.reset), jax.random.split(jax.random.key(0), max(sizes))),
+        tasks))
+    jobs = []
+    for task, (reset, _) in zip(tasks, resets):
+      full = reset(jax.random.split(jax.random.key(0), max(sizes)))
+      for n in sizes:
+        state = jax.tree.map(lambda x: x[:n], full)
+        jobs.append((task, n, "task", task_rollout(task, n, k), state))
+        if baseline:
+          jobs.append((task, n, "bare", bare_rollout(task, n, k), state.data))
+    compiled = list(pool.map(lambda j: _compile(j[3], j[4], key), jobs))
   rows = {}
-  for (n, kind, _, arg), (fn, compile_s) in zip(jobs, compiled):
+  for (task, n, kind, _, arg), (fn, compile_s) in zip(jobs, compiled):
     run_s = _time(fn, arg, key, repeats=repeats)
     substeps = n * k * task.n_sub_steps
-    row = rows.setdefault(n, dict(
-        bench="physics", device=jax.devices()[0].device_kind,
-        platform=jax.default_backend(), host=platform.node(), cpus=os.cpu_count(),
-        task=name, num_envs=n, control_steps=k, n_sub_steps=task.n_sub_steps,
-        concurrent_compiles=max(1, parallel_compiles)))
+    row = rows.setdefault((task.name, n), _row(task, n, k, parallel_compiles))
     if kind == "task":
       row.update(compile_s=round(compile_s, 3), run_s=run_s,
                  physics_steps_per_s=substeps / run_s, agent_steps_per_s=n * k / run_s)
@@ -117,16 +133,40 @@ def bench_task(name: str, sizes: list[int], k: int, repeats: int, baseline: bool
   for row in rows.values():
     if "bare_run_s" in row:
       row["wrapper_speed_ratio"] = row["bare_run_s"] / row["run_s"]
-  return [rows[n] for n in sizes]
+  return list(rows.values())
+
+
+def bench_task(name: str, sizes: list[int], k: int, repeats: int, baseline: bool,
+               parallel_compiles: int = 1, solver: tuple = (None, None)) -> list[dict]:
+  """`bench_tasks` for one task."""
+  return bench_tasks([name], sizes, k, repeats, baseline, parallel_compiles, solver)
+
+
+def _done(path: str | None, solver: tuple) -> set:
+  """(task, num_envs) pairs already in `path` for this device and solver budget."""
+  if not path or not os.path.exists(path):
+    return set()
+  device = jax.devices()[0].device_kind
+  done = set()
+  with open(path) as f:
+    for line in f:
+      r = json.loads(line)
+      task = models.load(r["task"], *solver)
+      if (r["device"] == device and r.get("solver_iterations") == task.solver_iterations
+          and r.get("ls_iterations") == task.ls_iterations):
+        done.add((r["task"], r["num_envs"]))
+  return done
 
 
 def markdown(rows: list[dict]) -> str:
-  lines = ["| device | task | envs | physics steps/s | bare MJX steps/s | task/bare | compile s |",
-           "|---|---|---:|---:|---:|---:|---:|"]
+  lines = ["| device | task | solver it/ls | envs | physics steps/s | bare MJX steps/s "
+           "| task/bare | compile s |",
+           "|---|---|---|---:|---:|---:|---:|---:|"]
   for r in rows:
     bare = r.get("bare_physics_steps_per_s")
     lines.append(
-        f"| {r['device']} | {r['task']} | {r['num_envs']:,} | {r['physics_steps_per_s']:,.0f} | "
+        f"| {r['device']} | {r['task']} | {r.get('solver_iterations', '?')}/"
+        f"{r.get('ls_iterations', '?')} | {r['num_envs']:,} | {r['physics_steps_per_s']:,.0f} | "
         + (f"{bare:,.0f} | {r['wrapper_speed_ratio']:.2f}" if bare else "– | –")
         + f" | {r['compile_s']:.1f} |")
   return "\n".join(lines) + "\n"
@@ -142,29 +182,44 @@ def main(argv=None) -> None:
   p.add_argument("--repeats", type=int, default=5)
   p.add_argument("--no-baseline", action="store_true", help="skip the bare MJX loop")
   p.add_argument("--parallel-compiles", type=int, default=1,
-                 help="XLA compilations to run at once per task (default: %(default)s)")
-  p.add_argument("--out", default=None, help="JSONL output path (a .md is written beside)")
+                 help="XLA compilations to run at once (default: %(default)s)")
+  p.add_argument("--tasks-per-wave", type=int, default=1,
+                 help="tasks compiled together before their runs are timed and written")
+  p.add_argument("--solver-iterations", type=int, default=None,
+                 help="override the solver's iterations (default: dm_control's)")
+  p.add_argument("--ls-iterations", type=int, default=None,
+                 help="override the line-search iterations (default: dm_control's)")
+  p.add_argument("--out", default=None,
+                 help="JSONL output path, appended to; (task, size) rows already there for "
+                      "this device and solver are skipped, so a cut-off run resumes "
+                      "(a .md of all its rows is written beside)")
   args = p.parse_args(argv)
   names = models.ALL_TASKS if args.tasks == "all" else tuple(args.tasks.split(","))
   for name in names:
     models.split_name(name)
   sizes = [int(s) for s in args.sizes.split(",")]
-  rows = []
-  for name in names:
-    for row in bench_task(name, sizes, args.steps, args.repeats, not args.no_baseline,
-                          args.parallel_compiles):
-      rows.append(row)
+  solver = (args.solver_iterations, args.ls_iterations)
+  done = _done(args.out, solver)
+  todo = [n for n in names if not all((n, size) in done for size in sizes)]
+  if len(todo) < len(names):
+    print(f"skipping {len(names) - len(todo)} task(s) already in {args.out}", flush=True)
+  for i in range(0, len(todo), max(1, args.tasks_per_wave)):
+    wave = todo[i:i + max(1, args.tasks_per_wave)]
+    for row in bench_tasks(wave, sizes, args.steps, args.repeats, not args.no_baseline,
+                           args.parallel_compiles, solver):
       print(json.dumps(row), flush=True)
       if args.out:
         os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
         with open(args.out, "a") as f:
           f.write(json.dumps(row) + "\n")
-  table = markdown(rows)
-  print(table)
   if args.out:
+    with open(args.out) as f:
+      rows = [json.loads(line) for line in f]
     with open(os.path.splitext(args.out)[0] + ".md", "w") as f:
-      f.write(f"`python -m benchmarks.physics {' '.join(argv)}`\n\n")
-      f.write(table)
+      f.write("Rows from `python -m benchmarks.physics` runs appended to "
+              f"`{os.path.basename(args.out)}` (each row holds its device and settings).\n\n")
+      f.write(markdown(rows))
+    print(markdown(rows))
 
 
 if __name__ == "__main__":

@@ -54,9 +54,10 @@ def load(name: str, solver_iterations: int | None = None,
   Args:
     name: one of `ALL_TASKS`, e.g. "walker-walk".
     solver_iterations, ls_iterations: override the constraint solver's
-      iteration budgets. None (the default) keeps dm_control's, which the parity
-      tests check; smaller budgets run faster but drift from dm_control (see
-      `dmcr_jax.models.base`).
+      iteration budgets. None keeps dm_control's iterations and caps the line
+      search at `base.DEFAULT_LS_ITERATIONS` (which leaves trajectories
+      unchanged; the parity tests check these defaults); smaller budgets run
+      faster but drift from dm_control (see `dmcr_jax.models.base`).
 
   Returns:
     A `Task` with pure, jittable `reset(key)` and `step(state, action)`.

@@ -18,13 +18,17 @@ form ``"<model field>:<element name>"`` (e.g. ``"geom_pos:target"``). They never
 touch the physics (those elements do not collide) and a renderer applies them by
 writing `model.<field>[<id of name>] = value`.
 
-Solver budget: by default the constraint solver keeps dm_control's settings (the
-model's `opt.iterations` / `opt.ls_iterations`, e.g. 100 / 50, stopping early at
-`opt.tolerance`), so trajectories track dm_control. Under `vmap` MJX's solver loop
-runs until the slowest env of the batch stops, so this budget sets the speed: on an
-H100 walker steps 0.43 M physics steps/s at 8,192 envs with dm_control's budget and
-7.6 M with `mjx.benchmark`'s 1 / 4 (benchmarks/results/physics_h100*.md).
-`load(name, solver_iterations=..., ls_iterations=...)` trades fidelity for speed.
+Solver budget: the solver keeps dm_control's iteration limit and tolerance, but
+the line search is capped at `DEFAULT_LS_ITERATIONS` (16; dm_control asks for 50).
+The cap is an MJX fix, not a physics change: MuJoCo C stops a line search once it
+converges, while MJX runs it as a fixed-length scan whose every step costs the
+same under `vmap`, so 50 steps made walker 2.5× slower (0.43 M vs 1.06 M physics
+steps/s on an H100 at 8,192 envs). Measured: in 1,000 random dm_control steps of
+every task the line search never used more than 13 cost evaluations, and MJX
+trajectories with caps 16 and 8 equal those with 50
+(benchmarks/results/solver_budget_cpu.md). `load(name, solver_iterations=...,
+ls_iterations=...)` overrides either budget; smaller solver budgets are faster but
+do drift (mjx.benchmark's 1 / 4 makes walker diverge).
 
 Non-finite actions: `step` cannot raise inside `jit`, so NaN entries become 0 and
 ±inf become the nearest bound (after `jnp.nan_to_num` and clipping); the
@@ -46,6 +50,9 @@ from flax import struct
 from mujoco import mjx
 
 Info = dict[str, jax.Array]
+
+# Line-search cap (MJX runs the line search as a fixed-length scan); see above.
+DEFAULT_LS_ITERATIONS = 16
 Observation = Mapping[str, jax.Array]
 
 
@@ -189,10 +196,12 @@ class Task:
     self.spec = spec
     self.name = spec.name
     self.mj_model = load_mj_model(spec)
+    if ls_iterations is None:
+      ls_iterations = min(int(self.mj_model.opt.ls_iterations), DEFAULT_LS_ITERATIONS)
     for field, value in (("iterations", solver_iterations), ("ls_iterations", ls_iterations)):
       if value is not None:
         if not isinstance(value, (int, np.integer)) or value < 1:
-          raise ValueError(f"{field} must be a positive int or None (dm_control's), got {value!r}")
+          raise ValueError(f"{field} must be a positive int or None (the default), got {value!r}")
         setattr(self.mj_model.opt, field, int(value))
     self.solver_iterations = int(self.mj_model.opt.iterations)
     self.ls_iterations = int(self.mj_model.opt.ls_iterations)
