@@ -3,7 +3,17 @@
 Physics is dm_control's own suite models stepped by vmapped MJX
 (`dmcr_jax.models`); visual seeds become batched render parameters
 (`dmcr_jax.visuals`). `ALL_TASKS` lists the 22 DMCR tasks.
+
+Importing the package on a machine without a display (no `DISPLAY`) and without
+`MUJOCO_GL` set selects MuJoCo's headless EGL backend, since MuJoCo reads
+`MUJOCO_GL` once at import and its default (GLFW) needs a display.
 """
+
+import os as _os
+
+if "MUJOCO_GL" not in _os.environ and not _os.environ.get("DISPLAY"):
+  _os.environ["MUJOCO_GL"] = "egl"
+  _os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 from dmcr_jax.models import ALL_TASKS, DOMAIN_TASKS, load
 
