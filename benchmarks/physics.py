@@ -96,8 +96,8 @@ def _row(task: models.Task, n: int, k: int, parallel_compiles: int) -> dict:
 
 
 def bench_tasks(names: list[str], sizes: list[int], k: int, repeats: int, baseline: bool,
-                parallel_compiles: int = 1, solver: tuple = (None, None)) -> list[dict]:
-  """Benchmarks several tasks at every batch size; returns one row per (task, size).
+                parallel_compiles: int = 1, solver: tuple = (None, None)):
+  """Benchmarks several tasks at every batch size; yields one row per (task, size).
 
   Each task's reset is compiled once at the largest size and sliced for smaller
   ones. All XLA compilations (resets, then rollouts) run in `parallel_compiles`
@@ -130,16 +130,16 @@ def bench_tasks(names: list[str], sizes: list[int], k: int, repeats: int, baseli
     else:
       row.update(bare_compile_s=round(compile_s, 3), bare_run_s=run_s,
                  bare_physics_steps_per_s=substeps / run_s)
-  for row in rows.values():
-    if "bare_run_s" in row:
-      row["wrapper_speed_ratio"] = row["bare_run_s"] / row["run_s"]
-  return list(rows.values())
+    if "run_s" in row and ("bare_run_s" in row or not baseline):
+      if baseline:
+        row["wrapper_speed_ratio"] = row["bare_run_s"] / row["run_s"]
+      yield row  # as soon as it is complete, so a cut-off run keeps it
 
 
 def bench_task(name: str, sizes: list[int], k: int, repeats: int, baseline: bool,
                parallel_compiles: int = 1, solver: tuple = (None, None)) -> list[dict]:
-  """`bench_tasks` for one task."""
-  return bench_tasks([name], sizes, k, repeats, baseline, parallel_compiles, solver)
+  """`bench_tasks` for one task, as a list."""
+  return list(bench_tasks([name], sizes, k, repeats, baseline, parallel_compiles, solver))
 
 
 def _done(path: str | None, solver: tuple) -> set:
