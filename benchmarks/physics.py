@@ -136,12 +136,6 @@ def bench_tasks(names: list[str], sizes: list[int], k: int, repeats: int, baseli
       yield row  # as soon as it is complete, so a cut-off run keeps it
 
 
-def bench_task(name: str, sizes: list[int], k: int, repeats: int, baseline: bool,
-               parallel_compiles: int = 1, solver: tuple = (None, None)) -> list[dict]:
-  """`bench_tasks` for one task, as a list."""
-  return list(bench_tasks([name], sizes, k, repeats, baseline, parallel_compiles, solver))
-
-
 def _done(path: str | None, solver: tuple) -> set:
   """(task, num_envs) pairs already in `path` for this device and solver budget."""
   if not path or not os.path.exists(path):
