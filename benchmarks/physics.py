@@ -195,6 +195,7 @@ def main(argv=None) -> None:
   solver = (args.solver_iterations, args.ls_iterations)
   done = _done(args.out, solver)
   todo = [n for n in names if not all((n, size) in done for size in sizes)]
+  rows = []
   if len(todo) < len(names):
     print(f"skipping {len(names) - len(todo)} task(s) already in {args.out}", flush=True)
   for i in range(0, len(todo), max(1, args.tasks_per_wave)):
@@ -202,6 +203,7 @@ def main(argv=None) -> None:
     for row in bench_tasks(wave, sizes, args.steps, args.repeats, not args.no_baseline,
                            args.parallel_compiles, solver):
       print(json.dumps(row), flush=True)
+      rows.append(row)
       if args.out:
         os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
         with open(args.out, "a") as f:
@@ -213,7 +215,7 @@ def main(argv=None) -> None:
       f.write("Rows from `python -m benchmarks.physics` runs appended to "
               f"`{os.path.basename(args.out)}` (each row holds its device and settings).\n\n")
       f.write(markdown(rows))
-    print(markdown(rows))
+  print(markdown(rows))
 
 
 if __name__ == "__main__":
