@@ -6,6 +6,8 @@ and random states, it measures, in one run:
   the look applied per frame (`render_model.FrameRenderer`);
 - the pool at each (batch, workers, quality): frames/s of `RenderPool.render`
   (the median of `--repeats` calls after a warm-up call); start-up time apart.
+  With the exact preset, 16 frames spread over the batch are compared with the
+  single-frame reference renderer (`reference_equal`: how many are bit-identical).
 
     python -m benchmarks.render --batches 64,256,1024,4096 --workers 1,4,8,16 \
         --qualities exact,fast,fastest --out benchmarks/results/render_h100.jsonl
@@ -70,24 +72,32 @@ def bench_pool(task: str, batch: int, workers: int, quality: str, size: int,
     start_s = time.perf_counter() - t0
     qpos, looks = _inputs(pool.rm, batch)
     looks = rmod.prepare(pool.rm, looks)
-    pool.render(qpos, looks, copy_out=False)  # warm-up
+    pixels = pool.render(qpos, looks)  # warm-up, and the frames checked below
     times = []
     for _ in range(repeats):
       t0 = time.perf_counter()
       pool.render(qpos, looks, copy_out=False)
       times.append(time.perf_counter() - t0)
     gl = pool.gl
+    checked = None
+    if quality == "exact":  # the reference renderer draws dm_control's settings
+      idx = np.unique(np.linspace(0, batch - 1, min(batch, 16)).astype(int))
+      with rmod.FrameRenderer(pool.rm, size, size) as ref:
+        checked = int(sum(np.array_equal(pixels[i], ref.render(looks, qpos[i], index=i))
+                          for i in idx))
+      checked = f"{checked}/{len(idx)}"
   run_s = statistics.median(times)
   return dict(batch=batch, workers=workers, quality=quality, gl=gl, start_s=start_s,
-              run_s=run_s, frames_per_s=batch / run_s)
+              run_s=run_s, frames_per_s=batch / run_s, reference_equal=checked)
 
 
 def markdown(rows: list[dict]) -> str:
-  lines = ["| device | gl | quality | batch | workers | frames/s | × naive |",
-           "|---|---|---|---:|---:|---:|---:|"]
+  lines = ["| device | gl | quality | batch | workers | frames/s | × naive | = reference |",
+           "|---|---|---|---:|---:|---:|---:|---:|"]
   for r in rows:
     lines.append(f"| {r['device']} | {r['gl']} | {r['quality']} | {r['batch']:,} | "
-                 f"{r['workers']} | {r['frames_per_s']:,.0f} | {r['speedup']:.1f} |")
+                 f"{r['workers']} | {r['frames_per_s']:,.0f} | {r['speedup']:.1f} | "
+                 f"{r.get('reference_equal') or '–'} |")
   return "\n".join(lines) + "\n"
 
 

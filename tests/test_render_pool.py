@@ -99,3 +99,21 @@ def test_close_leaves_nothing_behind():
     with pytest.raises(ProcessLookupError):
       os.kill(pid, 0)
   assert not any(os.path.exists(f"/dev/shm/{n}") for n in names)
+
+
+def test_frame_stacks_built_in_the_workers_survive_a_killed_worker(pool):
+  with RenderPool("reacher-easy", max_batch=8, workers=2, frame_stack=3) as stacked:
+    calls = [_inputs(pool.rm, 5, seed=s) for s in (3, 4, 5, 6)]
+    frames = [pool.render(*c) for c in calls]
+    restart = [None, np.zeros(5, bool), np.array([0, 1, 0, 0, 1], bool), np.zeros(5, bool)]
+    want = np.concatenate([frames[0]] * 3, axis=-1)
+    for t, (c, f, r) in enumerate(zip(calls, frames, restart)):
+      if t == 3:  # a worker dies between calls: its slice is re-rendered from `prev`
+        os.kill(stacked.pids[0], signal.SIGKILL)
+        time.sleep(0.2)
+      got = stacked.render(*c, restart=r)
+      if t:
+        want = np.concatenate([want[..., 3:], f], axis=-1)
+        want[r] = np.concatenate([f[r]] * 3, axis=-1)
+      np.testing.assert_array_equal(got, want)
+    assert stacked.restarts == 1

@@ -16,14 +16,21 @@ complete outputs with nothing lost or duplicated. `close()` (or leaving the
 
 Protocol of a worker's renderer (built by `factory(*args)` in the worker):
 `renderer(inputs: dict[str, np.ndarray], out: np.ndarray) -> None` renders
-`inputs[k][i]` into `out[i]` for every i of its slice.
+`inputs[k][i]` into `out[i]` for every i of its slice. With `buffers=2` the
+output is double-buffered: calls alternate between two output arrays and the
+renderer is called as `renderer(inputs, out, prev)`, where `prev` holds the
+previous call's output of the same rows. A renderer that reads only `prev` and
+`inputs` stays idempotent, so a re-rendered slice (after a fault) gives the
+same result — this is how frame stacks are built in the workers.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import multiprocessing as mp
 import os
+import sys
 import time
 import traceback
 from multiprocessing import connection, shared_memory
@@ -53,7 +60,32 @@ def _attach(name: str, spec: ArraySpec, batch: int):
   return shm, np.ndarray((batch,) + spec.shape, spec.dtype, buffer=shm.buf)
 
 
-def _worker_main(conn, factory, factory_args, in_names, in_specs, out_name, out_spec,
+@contextlib.contextmanager
+def _main_module_hidden():
+  """Starts spawned workers without re-running the caller's `__main__`.
+
+  A spawned child normally re-imports the parent's main script, which would run
+  a script's top level (e.g. `env = dmcr_jax.make(...)`) again in every worker
+  unless it sits under `if __name__ == "__main__":`. The workers need nothing
+  from `__main__` (their target and factory live in this package), so the
+  script's path and module spec are hidden while a worker process is launched
+  (the spawn preparation data is built synchronously inside `start()`).
+  """
+  main = sys.modules.get("__main__")
+  if main is None:
+    yield
+    return
+  saved = {k: main.__dict__[k] for k in ("__file__", "__spec__") if k in main.__dict__}
+  main.__dict__.pop("__file__", None)
+  main.__dict__["__spec__"] = None
+  try:
+    yield
+  finally:
+    main.__dict__.pop("__spec__", None)
+    main.__dict__.update(saved)
+
+
+def _worker_main(conn, factory, factory_args, in_names, in_specs, out_names, out_spec,
                  batch, env):
   """Entry point of a worker process: build the renderer, then serve calls."""
   os.environ.update(env)
@@ -64,8 +96,11 @@ def _worker_main(conn, factory, factory_args, in_names, in_specs, out_name, out_
       shm, arr = _attach(name, in_specs[key], batch)
       segments.append(shm)
       inputs[key] = arr
-    shm, out = _attach(out_name, out_spec, batch)
-    segments.append(shm)
+    outs = []
+    for name in out_names:
+      shm, arr = _attach(name, out_spec, batch)
+      segments.append(shm)
+      outs.append(arr)
     renderer = factory(*factory_args)
     conn.send(("ready", os.getpid()))
   except BaseException:  # noqa: BLE001 - reported to the parent
@@ -78,13 +113,16 @@ def _worker_main(conn, factory, factory_args, in_names, in_specs, out_name, out_
       break
     if msg[0] == "stop":
       break
-    _, call_id, start, stop = msg
+    _, call_id, start, stop, cur = msg
     try:
-      renderer({k: v[start:stop] for k, v in inputs.items()}, out[start:stop])
+      args = [outs[cur][start:stop]]
+      if len(outs) == 2:
+        args.append(outs[1 - cur][start:stop])
+      renderer({k: v[start:stop] for k, v in inputs.items()}, *args)
       conn.send(("done", call_id))
     except BaseException:  # noqa: BLE001 - reported to the parent
       conn.send(("error", traceback.format_exc()))
-  del inputs, out
+  del inputs, outs
   for s in segments:
     s.close()
 
@@ -104,17 +142,20 @@ class WorkerPool:
       building its renderer).
     max_retries: restarts per slice within one call before the call fails.
     env: environment variables set in each worker before the factory runs.
+    buffers: 1, or 2 for double-buffered outputs (see the module docstring).
   """
 
   def __init__(self, factory: Callable[..., Any], factory_args: Sequence[Any],
                inputs: Mapping[str, ArraySpec], output: ArraySpec, max_batch: int,
                workers: int, timeout: float = 120.0, start_timeout: float = 600.0,
                max_retries: int = 3,
-               env: Mapping[str, str] | None = None):
+               env: Mapping[str, str] | None = None, buffers: int = 1):
     if int(workers) < 1:
       raise ValueError(f"workers must be >= 1, got {workers}")
     if int(max_batch) < 1:
       raise ValueError(f"max_batch must be >= 1, got {max_batch}")
+    if buffers not in (1, 2):
+      raise ValueError(f"buffers must be 1 or 2, got {buffers}")
     self._factory, self._factory_args = factory, tuple(factory_args)
     self._in_specs = dict(inputs)
     self._out_spec = output
@@ -133,9 +174,11 @@ class WorkerPool:
     self._closed = False
     try:
       self.inputs = {k: self._alloc(s) for k, s in self._in_specs.items()}
-      self.output = self._alloc(output)
       self._in_names = {k: self._segments[i].name for i, k in enumerate(self._in_specs)}
-      self._out_name = self._segments[-1].name
+      self._outputs = [self._alloc(output) for _ in range(buffers)]
+      self._out_names = [shm.name for shm in self._segments[-buffers:]]
+      self._cur = 0
+      self.output = self._outputs[0]
       for w in range(self.num_workers):
         self._start(w)
       for w in range(self.num_workers):
@@ -156,8 +199,9 @@ class WorkerPool:
     proc = self._ctx.Process(
         target=_worker_main, daemon=True, name=f"dmcr-render-{w}",
         args=(child, self._factory, self._factory_args, self._in_names, self._in_specs,
-              self._out_name, self._out_spec, self.max_batch, self._env))
-    proc.start()
+              self._out_names, self._out_spec, self.max_batch, self._env))
+    with _main_module_hidden():
+      proc.start()
     child.close()
     self._procs[w], self._conns[w] = proc, parent
 
@@ -214,6 +258,7 @@ class WorkerPool:
       self._kill(w)
     self.inputs = {}
     self.output = None
+    self._outputs = []
     for shm in self._segments:
       try:
         shm.close()
@@ -245,13 +290,16 @@ class WorkerPool:
     """Renders envs [0, batch) from `self.inputs` into `self.output[:batch]`.
 
     Returns:
-      A view of the output rows (valid until the next call).
+      A view of the output rows (valid until the next call; with two buffers,
+      until the call after next, whose `prev` it is).
     """
     if self._closed:
       raise RuntimeError("the pool is closed")
     if not 1 <= batch <= self.max_batch:
       raise ValueError(f"batch must be in [1, {self.max_batch}], got {batch}")
     self._call_id += 1
+    self._cur = (self._call_id - 1) % len(self._outputs)
+    self.output = self._outputs[self._cur]
     pending = {w: s for w, s in enumerate(self.slices(batch)) if s[1] > s[0]}
     tries = {w: 0 for w in pending}
     deadline = {}
@@ -296,7 +344,7 @@ class WorkerPool:
 
   def _send(self, w: int, a: int, b: int) -> None:
     try:
-      self._conns[w].send(("render", self._call_id, a, b))
+      self._conns[w].send(("render", self._call_id, a, b, self._cur))
     except (BrokenPipeError, ConnectionResetError):
       pass  # the worker died before this call: its sentinel triggers the retry
 

@@ -11,6 +11,13 @@ Pixels equal the single-frame reference (`render_model.FrameRenderer`) bit for
 bit, for any number of workers and any batch size: every frame is rendered at
 the origin of its context and only copied into a tile (see `tiled`).
 
+Frame stacks (`frame_stack=k`): the workers also build each env's stacked
+observation (H, W, 3k), oldest frame first, in a double-buffered output: the new
+stack is the previous call's stack shifted by one frame plus the new frame (or
+the new frame k times where `restart` is set). Reading only the previous buffer
+keeps a re-rendered slice correct after a fault, and the stacking, a copy with
+3-byte runs, is spread over the workers instead of the caller.
+
 GL backend: `gl=None` takes `MUJOCO_GL` when set, else EGL when an NVIDIA device
 is present and OSMesa otherwise; pass "egl" or "osmesa" to choose.
 """
@@ -75,15 +82,18 @@ class _WorkerRenderer:
   """Built inside each worker: the render model, a tiled renderer, MjData."""
 
   def __init__(self, domain: str, variables: tuple[str, ...], height: int, width: int,
-               camera, quality: str, tiles: int | None):
+               camera, quality: str, tiles: int | None, frame_stack: int = 1):
     self.rm = copy.copy(rmod.build_render_model(domain))
     self.model = self.rm.model
     self.data = mujoco.MjData(self.model)
     self.variables = _variable_specs(self.model, variables)
     self.renderer = TiledRenderer(self.model, height, width, camera=camera,
                                   tiles=tiles, quality=quality)
+    self.frame_stack = frame_stack
+    self.frames = None
 
-  def __call__(self, inputs: Mapping[str, np.ndarray], out: np.ndarray) -> None:
+  def __call__(self, inputs: Mapping[str, np.ndarray], out: np.ndarray,
+               prev: np.ndarray | None = None) -> None:
     looks = rmod.Looks(**{f.name: inputs["look." + f.name]
                           for f in dataclasses.fields(rmod.Looks)})
     qpos = inputs["qpos"]
@@ -96,7 +106,19 @@ class _WorkerRenderer:
       d.qpos[:] = qpos[i]
       prepare_kinematics(m, d)
 
-    self.renderer.render(d, len(out), prepare, out)
+    if self.frame_stack == 1:
+      self.renderer.render(d, len(out), prepare, out)
+      return
+    n = len(out)
+    if self.frames is None or len(self.frames) < n:
+      self.frames = np.empty((n,) + out.shape[1:3] + (3,), np.uint8)
+    frames = self.frames[:n]
+    self.renderer.render(d, n, prepare, frames)
+    out[..., :-3] = prev[..., 3:]
+    out[..., -3:] = frames
+    restart = np.flatnonzero(inputs["restart"])
+    if len(restart):
+      out[restart] = np.concatenate([frames[restart]] * self.frame_stack, axis=-1)
 
 
 class RenderPool:
@@ -113,6 +135,8 @@ class RenderPool:
     gl: "egl" or "osmesa" (default: `default_gl()`).
     tiles: frames per readback in each worker (default: fill a 2048² buffer).
     timeout: seconds a worker may take for its slice before it is replaced.
+    frame_stack: k > 1 makes `render` return stacked observations
+      (N, H, W, 3k), built in the workers (see the module docstring).
 
   Use as a context manager, or call `close()`.
   """
@@ -120,7 +144,7 @@ class RenderPool:
   def __init__(self, task: str, max_batch: int, height: int = 84, width: int = 84,
                camera: int | str = 0, workers: int | None = None,
                quality: str = "exact", gl: str | None = None,
-               tiles: int | None = None, timeout: float = 120.0):
+               tiles: int | None = None, timeout: float = 120.0, frame_stack: int = 1):
     from dmcr_jax import models
     if "-" in task:
       domain, _ = models.split_name(task)
@@ -134,6 +158,10 @@ class RenderPool:
     check_quality(quality)
     if int(height) < 1 or int(width) < 1:
       raise ValueError(f"frame size must be positive, got {height}x{width}")
+    if isinstance(frame_stack, bool) or not isinstance(frame_stack, (int, np.integer)) \
+        or frame_stack < 1:
+      raise ValueError(f"frame_stack must be a positive int, got {frame_stack!r}")
+    self.frame_stack = int(frame_stack)
     workers = default_workers() if workers is None else int(workers)
     self.task, self.domain, self.variables = task, domain, variables
     self.height, self.width, self.gl, self.quality = int(height), int(width), gl, quality
@@ -144,11 +172,17 @@ class RenderPool:
     inputs.update({"look." + k: v for k, v in _look_specs(self.rm).items()})
     inputs.update({"var." + k: ArraySpec(shape, "float64")
                    for k, (_, _, shape) in self._var_specs.items()})
+    if self.frame_stack > 1:
+      inputs["restart"] = ArraySpec((), "bool")
     self._pool = WorkerPool(
-        _WorkerRenderer, (domain, variables, self.height, self.width, camera, quality, tiles),
-        inputs, ArraySpec((self.height, self.width, 3), "uint8"), max_batch=max_batch,
-        workers=workers, timeout=timeout,
-        env={"MUJOCO_GL": gl, "PYOPENGL_PLATFORM": gl})
+        _WorkerRenderer, (domain, variables, self.height, self.width, camera, quality, tiles,
+                          self.frame_stack),
+        inputs, ArraySpec((self.height, self.width, 3 * self.frame_stack), "uint8"),
+        max_batch=max_batch, workers=workers, timeout=timeout,
+        buffers=2 if self.frame_stack > 1 else 1,
+        # Workers never compute with JAX: keep it off the GPU (it would reserve
+        # most of the GPU's memory in every worker).
+        env={"MUJOCO_GL": gl, "PYOPENGL_PLATFORM": gl, "JAX_PLATFORMS": "cpu"})
     self.max_batch = self._pool.max_batch
     self.num_workers = self._pool.num_workers
 
@@ -163,7 +197,7 @@ class RenderPool:
 
   def render(self, qpos, looks: VisualParams | rmod.Looks,
              model_variables: Mapping[str, Any] | None = None, *,
-             copy_out: bool = True) -> np.ndarray:
+             restart=None, copy_out: bool = True) -> np.ndarray:
     """Renders N envs.
 
     Args:
@@ -171,11 +205,14 @@ class RenderPool:
       looks: the N envs' `VisualParams` (or `Looks` already prepared).
       model_variables: the task's model variables, each (N, …), e.g.
         `State.info`; extra keys are ignored.
-      copy_out: return a copy (True) or a view of shared memory that the next
+      restart: with `frame_stack` > 1, bool (N,): envs whose stack starts
+        afresh (the new frame repeated); None = all. A stack continues the
+        previous call's stack of the same env index.
+      copy_out: return a copy (True) or a view of shared memory that a later
         call overwrites (False).
 
     Returns:
-      uint8 array (N, height, width, 3).
+      uint8 array (N, height, width, 3 · frame_stack).
     """
     qpos = np.asarray(qpos)
     if qpos.ndim != 2 or qpos.shape[1] != self.nq:
@@ -201,6 +238,9 @@ class RenderPool:
       if v.shape != (n,) + shape:
         raise ValueError(f"model variable {k!r} must have shape {(n,) + shape}, got {v.shape}")
       shm["var." + k][:n] = v
+    if self.frame_stack > 1:
+      shm["restart"][:n] = True if restart is None else np.broadcast_to(
+          np.asarray(restart, bool), (n,))
     out = self._pool.run(n)
     return out.copy() if copy_out else out
 

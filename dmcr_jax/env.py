@@ -1,0 +1,331 @@
+"""`dmcr_jax.make`: N DMCR envs with pixels, as one gymnasium `VectorEnv`.
+
+Per agent step, for the whole batch:
+1. physics — one jitted call (`physics_env.step`): frame skip, rewards summed,
+   NEXT_STEP auto-reset, next visual seeds (device);
+2. transfer — the few arrays the host needs (qpos, task variables, rewards,
+   flags, state features, seeds) in one `jax.device_get`;
+3. render — looks of envs whose visual seed changed are rebuilt
+   (`visuals.sample` + `prepare`), then one `RenderPool.render` call, whose
+   workers also append the new frames to the envs' frame stacks (a reset env's
+   stack is its first frame repeated);
+4. copy — the stacked observations are copied out of shared memory (skipped
+   with `copy_obs=False`: observations are then views of the pool's shared
+   memory, valid until the step after next — enough to store a transition).
+`env.timings` accumulates the seconds spent in each part.
+
+Auto-reset follows gymnasium's NEXT_STEP mode: the step that ends an episode
+returns its last observation, reward and `truncated=True`; the env's next step
+ignores its action and returns the new episode's first observation with reward
+0 and both flags False. DMC tasks never terminate (`terminated` is always False);
+they are truncated at 1,000 control steps.
+
+Visual seeds (`visual_seeds=`):
+- an int: every env shows that look (0: dm_control's, the classic setting);
+- N ints: a fixed look per env;
+- a `SeedRange` (few-shot): every episode of every env draws its seed from the
+  range, e.g. `levels(1000)` = seeds [0, 1000); evaluation draws from
+  `TEST_SEEDS`, which no training range may overlap (see `visuals.levels`).
+
+Observations are uint8 (N, H, W, 3·frame_stack), channels-last, oldest frame
+first. `info` holds, per env: "state" (dm_control's state features, flat),
+"visual_seed", "episode" (episodes begun − 1), "episode_step" (agent steps in the
+episode) and "episode_return".
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Sequence
+
+import gymnasium
+import jax
+import jax.numpy as jnp
+import numpy as np
+from gymnasium.vector import AutoresetMode
+from gymnasium.vector.utils import batch_space
+
+from dmcr_jax import models, physics_env
+from dmcr_jax.visuals import render_model as rmod
+from dmcr_jax.visuals.factors import active_factors
+from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, SeedRange
+from dmcr_jax.visuals.params import check_seeds
+from dmcr_jax.visuals.render_pool import RenderPool, default_workers
+
+# Action repeat of the paper's Table 4; other tasks take their domain's value and
+# domains the table does not list take 4 (PlaNet/DrQ's default).
+ACTION_REPEAT = {"walker-walk": 2, "cheetah-run": 4, "hopper-stand": 4, "finger-spin": 2,
+                 "ball_in_cup-catch": 4, "cartpole-balance": 8}
+_DOMAIN_REPEAT = {"walker": 2, "cheetah": 4, "hopper": 4, "finger": 2, "ball_in_cup": 4,
+                  "cartpole": 8}
+TIMING_PARTS = ("physics", "transfer", "render", "copy")
+
+
+def default_frame_skip(task: str) -> int:
+  """The action repeat a task uses by default (see `ACTION_REPEAT`)."""
+  domain, _ = models.split_name(task)
+  return ACTION_REPEAT.get(task, _DOMAIN_REPEAT.get(domain, 4))
+
+
+def _positive_int(name: str, value) -> int:
+  if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+    raise ValueError(f"{name} must be a positive int, got {value!r}")
+  return int(value)
+
+
+def _seed_source(visual_seeds, num_envs: int) -> SeedRange | np.ndarray:
+  if isinstance(visual_seeds, SeedRange):
+    inside = [r for r in (TRAIN_SEEDS, TEST_SEEDS)
+              if r.start <= visual_seeds.start and visual_seeds.stop <= r.stop]
+    if not inside:
+      raise ValueError(f"visual_seeds {visual_seeds} straddles the training range "
+                       f"{TRAIN_SEEDS} and the held-out test range {TEST_SEEDS}; "
+                       "use a range inside one of them")
+    return visual_seeds
+  seeds = np.asarray(check_seeds(visual_seeds))
+  if np.ndim(visual_seeds) == 0:
+    return np.full((num_envs,), seeds[0], np.int32)
+  if seeds.shape != (num_envs,):
+    raise ValueError(f"visual_seeds must be one int, {num_envs} ints (one per env) or a "
+                     f"SeedRange; got {seeds.shape[0]} seeds for {num_envs} envs")
+  return seeds
+
+
+class PixelVectorEnv(gymnasium.vector.VectorEnv):
+  """N DMCR envs with pixel observations (a gymnasium `VectorEnv`).
+
+  Build it with `dmcr_jax.make` (same arguments). Use as a context manager or
+  call `close()` to stop the render workers.
+  """
+
+  metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": ["rgb_array"]}
+
+  def __init__(self, task: str, num_envs: int = 1, visual_seeds: Any = 0,
+               vary: str | Sequence[str] | None = "all", frame_skip: int | None = None,
+               frame_stack: int = 3, image_size: int | tuple[int, int] = 84,
+               camera: int | str = 0, seed: int = 0, *, workers: int | None = None,
+               quality: str = "exact", gl: str | None = None, copy_obs: bool = True,
+               solver_iterations: int | None = None, ls_iterations: int | None = None):
+    domain, _ = models.split_name(task)
+    n = _positive_int("num_envs", num_envs)
+    self.frame_skip = _positive_int(
+        "frame_skip", default_frame_skip(task) if frame_skip is None else frame_skip)
+    self.frame_stack = _positive_int("frame_stack", frame_stack)
+    h, w = (image_size, image_size) if np.ndim(image_size) == 0 else tuple(image_size)
+    self.height, self.width = _positive_int("image height", h), _positive_int("image width", w)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+      raise ValueError(f"seed must be an int, got {seed!r}")
+    active_factors(domain, vary)  # validates `vary`, listing the factors
+    self.task_name, self.domain, self.vary = task, domain, vary
+    self.seeds = _seed_source(visual_seeds, n)
+    self.task = models.load(task, solver_iterations, ls_iterations)
+    self.num_envs = n
+    self.single_action_space = gymnasium.spaces.Box(
+        self.task.action_low, self.task.action_high, (self.task.action_size,), np.float32)
+    self.single_observation_space = gymnasium.spaces.Box(
+        0, 255, (self.height, self.width, 3 * self.frame_stack), np.uint8)
+    self.action_space = batch_space(self.single_action_space, n)
+    self.observation_space = batch_space(self.single_observation_space, n)
+    self.render_mode = "rgb_array"
+    self.copy_obs = bool(copy_obs)
+    self.episode_length = -(-self.task.time_limit // self.frame_skip)
+    self._pool = None
+    self._pool = RenderPool(task, max_batch=n, height=self.height, width=self.width,
+                            camera=camera, workers=min(n, workers or default_workers()),
+                            quality=quality, gl=gl, frame_stack=self.frame_stack)
+    seeds = self.seeds if isinstance(self.seeds, SeedRange) else jnp.asarray(self.seeds)
+    self._init = physics_env.make_init(self.task, seeds, n)
+    donate = () if jax.default_backend() == "cpu" else (0,)
+    self._step = jax.jit(
+        lambda es, a: physics_env.step(self.task, seeds, self.frame_skip, es, a),
+        donate_argnums=donate)
+    self._key = jax.random.key(int(seed))
+    self._es = None
+    self._looks = None
+    self._look_seeds = None
+    self._obs = None
+    self._needs_reset = np.zeros(n, bool)
+    self.timings = dict.fromkeys(TIMING_PARTS, 0.0)
+    self.timed_steps = 0
+
+  # gymnasium API -------------------------------------------------------------
+
+  def reset(self, *, seed: int | None = None, options: dict | None = None):
+    """Starts a new episode in every env.
+
+    Args:
+      seed: re-seeds the dynamics keys (and few-shot seed draws); None continues
+        the env's key stream (a different episode each call).
+      options: not used (must be None or empty).
+
+    Returns:
+      (observations, info) for all N envs.
+    """
+    if options:
+      raise ValueError(f"PixelVectorEnv.reset takes no options, got {sorted(options)}")
+    if seed is not None:
+      if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+        raise ValueError(f"seed must be an int or None, got {seed!r}")
+      self._key = jax.random.key(int(seed))
+    self._key, key = jax.random.split(self._key)
+    self._es = self._init(key)
+    host = self._fetch(self._es, None, None)
+    self._obs = self._output(self._render(host, restart=None))
+    self._needs_reset = np.zeros(self.num_envs, bool)
+    return self._obs, self._info(host)
+
+  def step(self, actions):
+    """One agent step of every env (NEXT_STEP auto-reset, see the module docstring).
+
+    Args:
+      actions: float (N, action_size), finite (clipped to the action bounds).
+
+    Returns:
+      (observations, rewards, terminated, truncated, info).
+
+    Raises:
+      ValueError: wrong shape or non-finite actions (nothing is stepped).
+      RuntimeError: `step` before `reset`.
+    """
+    if self._es is None:
+      raise RuntimeError("call reset() before step()")
+    actions = self._check_actions(actions)
+    t0 = time.perf_counter()
+    es, reward, truncated = self._step(self._es, actions)
+    self._es = jax.block_until_ready(es)
+    t1 = time.perf_counter()
+    host = self._fetch(self._es, reward, truncated)
+    t2 = time.perf_counter()
+    stacked = self._render(host, restart=self._needs_reset)
+    t3 = time.perf_counter()
+    obs = self._obs = self._output(stacked)
+    self._needs_reset = host["truncated"]
+    t4 = time.perf_counter()
+    for part, dt in zip(TIMING_PARTS, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
+      self.timings[part] += dt
+    self.timed_steps += 1
+    terminated = np.zeros(self.num_envs, bool)
+    return obs, host["reward"], terminated, host["truncated"], self._info(host)
+
+  def render(self) -> np.ndarray | None:
+    """The latest frame of every env, uint8 (N, H, W, 3) (None before reset)."""
+    return None if self._obs is None else self._obs[..., -3:].copy()
+
+  def close(self, **kwargs) -> None:
+    """Stops the render workers (idempotent)."""
+    if self._pool is not None:
+      self._pool.close()
+      self._pool = None
+
+  def __enter__(self):
+    return self
+
+  def __exit__(self, *exc):
+    self.close()
+
+  def __del__(self):
+    if getattr(self, "_pool", None) is not None:
+      self.close()
+
+  @property
+  def state(self) -> physics_env.EnvState | None:
+    """The envs' current `EnvState` on the device (None before reset)."""
+    return self._es
+
+  def reset_timings(self) -> None:
+    self.timings = dict.fromkeys(TIMING_PARTS, 0.0)
+    self.timed_steps = 0
+
+  def __repr__(self):
+    seeds = (self.seeds if isinstance(self.seeds, SeedRange)
+             else f"fixed {np.unique(self.seeds)[:4].tolist()}…")
+    return (f"PixelVectorEnv({self.task_name!r}, num_envs={self.num_envs}, "
+            f"visual_seeds={seeds}, vary={self.vary!r}, frame_skip={self.frame_skip}, "
+            f"frame_stack={self.frame_stack}, image={self.height}x{self.width})")
+
+  # Internals ------------------------------------------------------------------
+
+  def _check_actions(self, actions) -> np.ndarray:
+    a = np.asarray(actions, dtype=np.float32)
+    want = (self.num_envs, self.task.action_size)
+    if a.shape != want:
+      raise ValueError(f"actions must have shape {want} (num_envs, action_size), "
+                       f"got {np.shape(actions)}")
+    bad = ~np.isfinite(a).all(axis=1)
+    if bad.any():
+      raise ValueError(f"actions must be finite; envs {np.flatnonzero(bad)[:8].tolist()} "
+                       "have NaN or inf entries")
+    return a
+
+  def _fetch(self, es: physics_env.EnvState, reward, truncated) -> dict:
+    s = es.task
+    out = {"qpos": s.data.qpos, "variables": {k: s.info[k] for k in self.task.model_variable_ids},
+           "state": s.obs, "visual_seed": es.visual_seed, "episode": es.episode,
+           "episode_step": es.episode_step, "episode_return": es.episode_return}
+    if reward is not None:
+      out["reward"], out["truncated"] = reward, truncated
+    return jax.device_get(out)
+
+  def _update_looks(self, seeds: np.ndarray) -> None:
+    rm = self._pool.rm
+    if self._looks is None:
+      changed = np.arange(len(seeds))
+    else:
+      changed = np.flatnonzero(seeds != self._look_seeds)
+      if not len(changed):
+        return
+    new = rmod.prepare(rm, rm.sample(seeds[changed], vary=self.vary))
+    if self._looks is None:
+      self._looks = new
+    else:
+      for field in rmod.Looks.__dataclass_fields__:
+        getattr(self._looks, field)[changed] = getattr(new, field)
+    self._look_seeds = seeds.copy()
+
+  def _output(self, stacked: np.ndarray) -> np.ndarray:
+    return stacked.copy() if self.copy_obs else stacked
+
+  def _render(self, host: dict, restart) -> np.ndarray:
+    if self._pool is None:
+      raise RuntimeError("the env is closed")
+    self._update_looks(np.asarray(host["visual_seed"]))
+    return self._pool.render(host["qpos"].astype(np.float64), self._looks,
+                             host["variables"], restart=restart, copy_out=False)
+
+  def _info(self, host: dict) -> dict:
+    return {k: host[k] for k in ("state", "visual_seed", "episode", "episode_step",
+                                 "episode_return")}
+
+
+def make(task: str, num_envs: int = 1, visual_seeds: Any = 0,
+         vary: str | Sequence[str] | None = "all", frame_skip: int | None = None,
+         frame_stack: int = 3, image_size: int | tuple[int, int] = 84,
+         camera: int | str = 0, seed: int = 0, **kwargs) -> PixelVectorEnv:
+  """N DMCR envs with pixels, stepped as one batch (see the module docstring).
+
+  Args:
+    task: one of `dmcr_jax.ALL_TASKS`, e.g. "walker-walk".
+    num_envs: N ≥ 1.
+    visual_seeds: an int (every env), N ints (one per env), or a `SeedRange`
+      drawn from at every reset (few-shot: `levels(1000)`; test: `TEST_SEEDS`).
+    vary: factors the visual seeds change ("all", "none", "floor,background", …).
+    frame_skip: control steps per agent step, rewards summed (default: the
+      paper's action repeat, `default_frame_skip(task)`).
+    frame_stack: frames per observation, stacked on the channel axis.
+    image_size: H = W, or (H, W).
+    camera: camera id or name (camera 0 is the one the visual seeds move).
+    seed: dynamics seed (initial states; and few-shot seed draws).
+    **kwargs: `workers`, `quality` ("exact", "fast", "fastest"), `gl`
+      ("egl", "osmesa") for the `RenderPool`; `copy_obs` (default True; False
+      returns views of shared memory, see the module docstring);
+      `solver_iterations`, `ls_iterations` for the physics (`models.load`).
+
+  Returns:
+    A `PixelVectorEnv` (a gymnasium `VectorEnv`); call `reset()` first.
+
+  Raises:
+    ValueError: unknown task, factor, quality or GL backend (the message lists
+      the valid ones), num_envs ≤ 0, a visual-seed count other than 1 or N.
+  """
+  return PixelVectorEnv(task, num_envs, visual_seeds, vary, frame_skip, frame_stack,
+                        image_size, camera, seed, **kwargs)

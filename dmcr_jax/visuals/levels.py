@@ -1,0 +1,100 @@
+"""Visual-seed ranges: where training levels may come from, and the held-out test range.
+
+The space of visual seeds [0, 2**31) is split in two halves that never overlap:
+
+- `TRAIN_SEEDS` = [0, 2**30): every training range lies here. Seed 0 is
+  dm_control's look (the classic setting trains on it alone); `levels(n)` is the
+  few-shot range [0, n) of the first n seeds.
+- `TEST_SEEDS` = [2**30, 2**31 − 1): evaluation draws only from here, so a test
+  look is never a look some agent trained on, whatever training range it used.
+  (The original DMCR drew test seeds that could coincide with training levels.)
+
+A `SeedRange` is a half-open interval [start, stop) of seeds; `sample(key, shape)`
+draws from it uniformly inside `jit`, and `first(n)` lists its first n seeds (a
+fixed, documented evaluation set).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dmcr_jax.visuals.params import MAX_SEED
+
+_SPLIT = 2**30
+
+
+@dataclasses.dataclass(frozen=True)
+class SeedRange:
+  """The visual seeds start, start + 1, …, stop − 1.
+
+  Attributes:
+    start: first seed (≥ 0).
+    stop: one past the last seed (≤ 2**31 − 1, > start).
+  """
+  start: int
+  stop: int
+
+  def __post_init__(self):
+    for name in ("start", "stop"):
+      v = getattr(self, name)
+      if not isinstance(v, (int, np.integer)) or isinstance(v, bool):
+        raise TypeError(f"SeedRange.{name} must be an int, got {v!r}")
+    if not 0 <= self.start < self.stop <= MAX_SEED:
+      raise ValueError(f"SeedRange needs 0 <= start < stop <= 2**31 - 1, got "
+                       f"[{self.start}, {self.stop})")
+    object.__setattr__(self, "start", int(self.start))
+    object.__setattr__(self, "stop", int(self.stop))
+
+  def __len__(self) -> int:
+    return self.stop - self.start
+
+  def __contains__(self, seed) -> bool:
+    return self.start <= int(seed) < self.stop
+
+  def overlaps(self, other: "SeedRange") -> bool:
+    return self.start < other.stop and other.start < self.stop
+
+  def contains_all(self, seeds) -> bool:
+    """Whether every seed of an int array lies in the range."""
+    seeds = np.asarray(seeds)
+    return bool(np.all((seeds >= self.start) & (seeds < self.stop)))
+
+  def sample(self, key: jax.Array, shape: tuple[int, ...] = ()) -> jax.Array:
+    """Uniform int32 seeds from the range (jittable)."""
+    return jax.random.randint(key, shape, self.start, self.stop, dtype=jnp.int32)
+
+  def first(self, n: int) -> np.ndarray:
+    """The range's first `n` seeds, int32 (n,)."""
+    if not 0 < n <= len(self):
+      raise ValueError(f"need 0 < n <= {len(self)}, got {n}")
+    return np.arange(self.start, self.start + n, dtype=np.int32)
+
+  def __repr__(self):
+    return f"SeedRange({self.start}, {self.stop})"
+
+
+TRAIN_SEEDS = SeedRange(0, _SPLIT)
+TEST_SEEDS = SeedRange(_SPLIT, MAX_SEED)
+
+
+def levels(num_levels: int, start: int = 0) -> SeedRange:
+  """A few-shot training range: `num_levels` seeds from `start` (default [0, n)).
+
+  Raises:
+    ValueError: if the range would leave `TRAIN_SEEDS` (reach the test range).
+  """
+  if not isinstance(num_levels, (int, np.integer)) or num_levels < 1:
+    raise ValueError(f"num_levels must be a positive int, got {num_levels!r}")
+  return check_training_range(SeedRange(start, start + int(num_levels)))
+
+
+def check_training_range(r: SeedRange) -> SeedRange:
+  """Returns `r` if it lies inside `TRAIN_SEEDS`, else raises ValueError."""
+  if r.overlaps(TEST_SEEDS):
+    raise ValueError(f"training range {r} overlaps the held-out test range {TEST_SEEDS}; "
+                     f"training seeds must lie in {TRAIN_SEEDS}")
+  return r
