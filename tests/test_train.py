@@ -1,0 +1,106 @@
+"""The training loop and `train` command: argument checks, checkpoints, kill and resume."""
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from train import loop, sac
+from train.__main__ import parse
+
+pytestmark = pytest.mark.xdist_group("train")
+
+TINY = sac.SACConfig(batch_size=8, conv_channels=4, feature_dim=8, hidden_dim=16)
+CFG = dict(task="pendulum-swingup", action_repeat=100, image_size=16, buffer_capacity=200,
+           warmup_steps=5, quality="fastest", workers=1, log_every=5, sac=TINY)
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["--task", "walker-fly"], "Valid tasks"),
+    (["--aug", "blur"], "valid names"),
+    (["--seeds", "1,1"], "distinct"),
+    (["--steps", "0"], "steps must be a positive int"),
+    (["--utd", "0"], "utd must be > 0"),
+    (["--quality", "best"], "valid: exact, fast, fastest"),
+    (["--visual-seeds", "some"], "invalid literal"),
+    (["--image-size", "8"], "image_size must be >= 16"),
+    (["--buffer-capacity", "3"], "buffer_capacity must be at least"),
+])
+def test_bad_arguments_fail_before_anything_is_built(argv, match, capsys):
+  with pytest.raises(SystemExit):
+    parse(argv)
+  assert match in capsys.readouterr().err
+
+
+def test_defaults_follow_the_paper():
+  cfg, _ = parse([])
+  assert cfg.task == "cartpole-balance" and cfg.steps == 50_000 and cfg.warmup_steps == 1000
+  assert cfg.buffer_capacity == 100_000 and cfg.frame_stack == 3 and cfg.image_size == 84
+  assert cfg.sac.batch_size == 256 and cfg.sac.aug == "drq" and cfg.action_repeat is None
+
+
+def test_checkpoint_round_trip(tmp_path):
+  make = lambda s: jax.vmap(lambda k: sac.init_agent(k, (16, 16, 9), 1, TINY))(
+      jax.random.split(jax.random.key(s), 2))
+  saved, key = make(0), jax.random.key(42)
+  manager = loop._checkpointer(str(tmp_path))
+  loop._save(manager, 7, saved, key)
+  agents, key2, step = loop._restore(loop._checkpointer(str(tmp_path)), make(1), jax.random.key(0))
+  assert step == 7
+  np.testing.assert_array_equal(jax.random.key_data(key2), jax.random.key_data(key))
+  for a, b in zip(jax.tree.leaves(saved), jax.tree.leaves(agents)):
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_interrupted_run_resumes_where_it_stopped(tmp_path):
+  out = str(tmp_path / "run")
+  # The resumed run (in this process) reuses the interrupted one's compilations.
+  cache = str(tmp_path / "jax_cache")
+  jax.config.update("jax_compilation_cache_dir", cache)
+  script = textwrap.dedent(f"""
+      from train import loop, sac
+      cfg = loop.TrainConfig(steps=400, checkpoint_every=10, out_dir={out!r}, seeds=(0, 1),
+                             **{ {k: v for k, v in CFG.items() if k != "sac"}!r},
+                             sac=sac.SACConfig(batch_size=8, conv_channels=4, feature_dim=8,
+                                               hidden_dim=16))
+      print(loop.train(cfg, progress=False)["steps"], flush=True)
+      """)
+  proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE, text=True,
+                          env=dict(os.environ, JAX_COMPILATION_CACHE_DIR=cache))
+  ckpt = os.path.join(out, "checkpoints")
+  deadline = time.time() + 400
+  while time.time() < deadline and proc.poll() is None:
+    if os.path.isdir(ckpt) and any(d.isdigit() and int(d) >= 20 for d in os.listdir(ckpt)):
+      break
+    time.sleep(0.5)
+  assert proc.poll() is None, proc.communicate()[1][-2000:]
+  proc.send_signal(signal.SIGINT)
+  stdout, stderr = proc.communicate(timeout=120)
+  assert proc.returncode == 0, stderr[-2000:]
+  stopped = int(stdout.split()[-1])
+  assert 20 <= stopped < 400
+  saved = max(int(d) for d in os.listdir(ckpt) if d.isdigit())
+  assert saved == stopped  # the signal's checkpoint
+
+  cfg = loop.TrainConfig(steps=stopped + 15, checkpoint_every=0, out_dir=out, seeds=(0, 1),
+                         **{k: v for k, v in CFG.items()})
+  summary = loop.train(cfg, resume=True, progress=False)
+  assert summary["steps"] == stopped + 15 and not summary["interrupted"]
+  assert max(int(d) for d in os.listdir(ckpt) if d.isdigit()) == stopped + 15
+  with open(os.path.join(out, "log.csv")) as f:
+    rows = list(csv.DictReader(f))
+  assert {r["agent"] for r in rows} == {"0", "1"}
+  assert os.path.exists(os.path.join(out, "learning_curve.png"))
+  with pytest.raises(FileNotFoundError, match="no checkpoint"):
+    loop.train(loop.TrainConfig(steps=5, out_dir=str(tmp_path / "empty"), **CFG),
+               resume=True, progress=False)
+  jax.config.update("jax_compilation_cache_dir", None)

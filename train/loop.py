@@ -1,0 +1,336 @@
+"""The SAC+AUG training loop: K agents vmapped, each acting in its own N pixel envs.
+
+One `dmcr_jax.make` env of K·N envs serves all agents (agent k acts in envs
+k·N … k·N + N − 1); agents, replay buffers and their updates carry a leading
+agent axis K and run as one vmapped, jitted call, sharded over the local devices
+along that axis when K divides evenly. Per agent step (one `env.step`, the host
+boundary): act (jitted), step the envs, add the transition to every agent's
+buffer (jitted, buffers donated), and, once the warm-up is over, run the updates
+owed so far as one `lax.scan` over `sac.update_pair` (so "actor and targets every
+2 updates" holds). `utd` gradient updates are owed per agent step of each env.
+
+Steps: `steps` counts agent steps of ONE env of one agent (the paper's "training
+steps": an agent step is `action_repeat` control steps), so with N envs an agent
+sees N·`steps` transitions; the first `warmup_steps` take uniform random actions
+(Table 6: 1,000).
+
+Checkpoints (orbax, `<out>/checkpoints`): the agents (parameters, optimizer
+states, α, update count), the step counter and the RNG key, every
+`checkpoint_every` steps and when SIGINT/SIGTERM arrives. `resume` restores
+exactly those; the replay buffers are NOT saved (100,000 frames are 2.1 GB per
+agent): a resumed run starts new episodes and refills its buffers with the
+restored policy, and updates wait until each buffer can be sampled again.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import functools
+import json
+import os
+import signal
+import time
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from train import replay, sac
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+  """What a training run does (every field has the paper's default where it has one).
+
+  Attributes:
+    task: a DMCR task, e.g. "cartpole-balance".
+    steps: agent steps per env (the paper's training steps, Table 4).
+    seeds: one agent per seed (network init, exploration, dynamics).
+    num_envs: envs per agent.
+    action_repeat: None = the paper's Table 4 value for the task.
+    visual_seeds: an int (fixed look; 0 = dm_control's) or "levels:<n>"
+      (few-shot: every episode draws a look from seeds [0, n)).
+    vary: factors the visual seeds change.
+    warmup_steps: random-action steps before learning (Table 6: 1,000).
+    utd: gradient updates per agent step of each env (Table 6: 1).
+    buffer_capacity: transitions per agent (Table 6: 100,000).
+    image_size, frame_stack: observation size (Table 6: 84, 3).
+    quality: render preset (`dmcr_jax.visuals.tiled.QUALITY`).
+    workers: render workers (None: one per core).
+    log_every: steps between progress-bar and CSV metric updates.
+    checkpoint_every: steps between checkpoints (0: only at the end / on a signal).
+    out_dir: where the CSV, the PNG and the checkpoints go.
+    sac: the learner's hyperparameters.
+  """
+  task: str = "cartpole-balance"
+  steps: int = 50_000
+  seeds: tuple[int, ...] = (0,)
+  num_envs: int = 1
+  action_repeat: int | None = None
+  visual_seeds: int | str = 0
+  vary: str = "all"
+  warmup_steps: int = 1000
+  utd: float = 1.0
+  buffer_capacity: int = 100_000
+  image_size: int = 84
+  frame_stack: int = 3
+  quality: str = "exact"
+  workers: int | None = None
+  log_every: int = 1000
+  checkpoint_every: int = 10_000
+  out_dir: str = "runs/default"
+  sac: sac.SACConfig = sac.SACConfig()
+
+
+def parse_visual_seeds(value) -> Any:
+  """`TrainConfig.visual_seeds` → what `dmcr_jax.make` takes."""
+  from dmcr_jax.visuals.levels import levels
+  if isinstance(value, str) and value.startswith("levels:"):
+    return levels(int(value.split(":", 1)[1]))
+  try:
+    return int(value)
+  except (TypeError, ValueError):
+    raise ValueError(f"visual_seeds must be an int or 'levels:<n>', got {value!r}") from None
+
+
+def check_config(cfg: TrainConfig) -> None:
+  """Raises ValueError naming the problem (before anything is compiled)."""
+  from dmcr_jax import models
+  from dmcr_jax.visuals.factors import active_factors
+  from dmcr_jax.visuals.tiled import check_quality
+  domain, _ = models.split_name(cfg.task)
+  active_factors(domain, cfg.vary)
+  check_quality(cfg.quality)
+  parse_visual_seeds(cfg.visual_seeds)
+  for name in ("steps", "num_envs", "buffer_capacity", "image_size", "frame_stack",
+               "log_every"):
+    v = getattr(cfg, name)
+    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+      raise ValueError(f"{name} must be a positive int, got {v!r}")
+  if not cfg.seeds or len(set(cfg.seeds)) != len(cfg.seeds):
+    raise ValueError(f"seeds must be distinct ints, got {cfg.seeds!r}")
+  if cfg.warmup_steps < 0 or cfg.checkpoint_every < 0:
+    raise ValueError("warmup_steps and checkpoint_every must be >= 0")
+  if not cfg.utd > 0:
+    raise ValueError(f"utd must be > 0, got {cfg.utd}")
+  if cfg.action_repeat is not None and cfg.action_repeat < 1:
+    raise ValueError(f"action_repeat must be a positive int, got {cfg.action_repeat}")
+  if cfg.buffer_capacity < cfg.num_envs * (cfg.frame_stack + 1):
+    raise ValueError(f"buffer_capacity must be at least num_envs·(frame_stack + 1) = "
+                     f"{cfg.num_envs * (cfg.frame_stack + 1)}")
+  if cfg.image_size < 16:
+    raise ValueError(f"image_size must be >= 16 for the encoder, got {cfg.image_size}")
+
+
+# Jitted pieces (vmapped over the agent axis K) ------------------------------------
+
+
+@functools.partial(jax.jit, static_argnames=("random",))
+def _act(agents: sac.AgentState, obs: jax.Array, key: jax.Array, random: bool):
+  """Actions in [−1, 1] for obs (K, N, H, W, C): the policies', or uniform."""
+  k, n = obs.shape[:2]
+  keys = jax.random.split(key, k)
+  if random:
+    size = agents.networks.actor.action_size
+    return jax.vmap(lambda kk: jax.random.uniform(kk, (n, size), minval=-1, maxval=1))(keys)
+  return jax.vmap(lambda a, o, kk: sac.act(a, o, kk))(agents, obs, keys)
+
+
+@functools.partial(jax.jit, donate_argnums=(0,))
+def _add(buffers, frame, first, action, reward):
+  return jax.vmap(replay.add)(buffers, frame, first, action, reward)
+
+
+@functools.partial(jax.jit, static_argnames=("pairs", "config"), donate_argnums=(0,))
+def _update(agents, buffers, key, pairs: int, config: sac.SACConfig):
+  """`pairs` × `update_pair` for every agent, one scan; returns the mean metrics."""
+  def one_agent(agent, buffer, key):
+    def body(agent, k):
+      k_sample, k_update = jax.random.split(k)
+      batches = jax.vmap(lambda kk: replay.sample(buffer, kk, config.batch_size))(
+          jax.random.split(k_sample, 2))
+      return sac.update_pair(agent, batches, k_update, config)
+    agent, metrics = jax.lax.scan(body, agent, jax.random.split(key, pairs))
+    return agent, jax.tree.map(jnp.mean, metrics)
+  keys = jax.random.split(key, jax.tree.leaves(buffers)[0].shape[0])
+  return jax.vmap(one_agent)(agents, buffers, keys)
+
+
+def _sharding(k: int):
+  """NamedSharding of the agent axis over the local devices, or None."""
+  devices = jax.local_devices()
+  if len(devices) < 2 or k % len(devices):
+    return None
+  mesh = jax.sharding.Mesh(np.array(devices), ("agents",))
+  return jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("agents"))
+
+
+def _put(tree, sharding):
+  return tree if sharding is None else jax.device_put(tree, sharding)
+
+
+# Checkpoints ------------------------------------------------------------------------
+
+
+def _checkpointer(out_dir: str):
+  import orbax.checkpoint as ocp
+  return ocp.CheckpointManager(
+      os.path.abspath(os.path.join(out_dir, "checkpoints")),
+      options=ocp.CheckpointManagerOptions(max_to_keep=2))
+
+
+def _save(manager, step: int, agents, key) -> None:
+  import orbax.checkpoint as ocp
+  state = {"agents": agents, "key": jax.random.key_data(key),
+           "step": np.asarray(step, np.int64)}
+  manager.save(step, args=ocp.args.StandardSave(state), force=True)
+  manager.wait_until_finished()
+
+
+def _restore(manager, agents, key):
+  import orbax.checkpoint as ocp
+  step = manager.latest_step()
+  if step is None:
+    return None
+  like = {"agents": agents, "key": jax.random.key_data(key),
+          "step": np.asarray(0, np.int64)}
+  state = manager.restore(step, args=ocp.args.StandardRestore(like))
+  return state["agents"], jax.random.wrap_key_data(state["key"]), int(state["step"])
+
+
+# The loop ---------------------------------------------------------------------------
+
+
+def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict:
+  """Trains `len(cfg.seeds)` agents; returns a summary (also written as JSON).
+
+  Writes `<out_dir>/log.csv` (one row per finished episode: step, agent, seed,
+  return, wall time, agent-steps/s and the latest update metrics),
+  `<out_dir>/learning_curve.png` and `<out_dir>/summary.json`.
+  """
+  import dmcr_jax
+  check_config(cfg)
+  os.makedirs(cfg.out_dir, exist_ok=True)
+  k, n = len(cfg.seeds), cfg.num_envs
+  env = dmcr_jax.make(cfg.task, num_envs=k * n, visual_seeds=parse_visual_seeds(cfg.visual_seeds),
+                      vary=cfg.vary, frame_skip=cfg.action_repeat, frame_stack=cfg.frame_stack,
+                      image_size=cfg.image_size, seed=int(cfg.seeds[0]), quality=cfg.quality,
+                      workers=cfg.workers)
+  with env:
+    obs_shape = env.single_observation_space.shape
+    action_size = env.task.action_size
+    low, high = env.single_action_space.low, env.single_action_space.high
+    sharding = _sharding(k)
+    agents = jax.vmap(lambda s: sac.init_agent(jax.random.key(s), obs_shape, action_size,
+                                               cfg.sac))(jnp.asarray(cfg.seeds))
+    one = replay.init(cfg.buffer_capacity, n, obs_shape[:2] + (3,), action_size,
+                      cfg.frame_stack)
+    buffers = jax.tree.map(lambda x: jnp.broadcast_to(x, (k,) + x.shape), one)
+    key = jax.random.key(int(cfg.seeds[0]) + 7919)
+    start = 0
+    manager = _checkpointer(cfg.out_dir)
+    if resume:
+      restored = _restore(manager, agents, key)
+      if restored is None:
+        raise FileNotFoundError(f"--resume: no checkpoint in {cfg.out_dir}/checkpoints")
+      agents, key, start = restored
+    agents, buffers = _put(agents, sharding), _put(buffers, sharding)
+
+    stop = {"signal": None}
+    previous = {s: signal.signal(s, lambda sig, _: stop.update(signal=sig))
+                for s in (signal.SIGINT, signal.SIGTERM)}
+    log_path = os.path.join(cfg.out_dir, "log.csv")
+    fields = ["step", "agent", "seed", "episode_return", "wall_s", "agent_steps_per_s",
+              "critic_loss", "actor_loss", "alpha", "q"]
+    new_log = not (resume and os.path.exists(log_path))
+    log_file = open(log_path, "w" if new_log else "a", newline="")
+    writer = csv.DictWriter(log_file, fieldnames=fields)
+    if new_log:
+      writer.writeheader()
+    bar = None
+    if progress:
+      from tqdm.auto import tqdm
+      bar = tqdm(total=cfg.steps, initial=start, desc=cfg.task, unit="step")
+    t0, owed, metrics, recent, ready = time.perf_counter(), 0.0, {}, [], False
+    try:
+      obs, info = env.reset(seed=int(cfg.seeds[0]) + start)
+      first = info["episode_step"] == 0
+      step = start
+      while step < cfg.steps and stop["signal"] is None:
+        key, k_act, k_upd = jax.random.split(key, 3)
+        obs_k = _put(jnp.asarray(obs.reshape((k, n) + obs.shape[1:])), sharding)
+        action = _act(agents, obs_k, k_act, random=step < cfg.warmup_steps)
+        action_host = np.asarray(action).reshape(k * n, action_size)
+        env_action = low + (action_host + 1.0) * 0.5 * (high - low)
+        next_obs, reward, _, truncated, info = env.step(env_action.astype(np.float32))
+        buffers = _add(buffers, obs_k[..., -3:], jnp.asarray(first.reshape(k, n)), action,
+                       jnp.asarray(reward.reshape(k, n)))
+        obs, first = next_obs, info["episode_step"] == 0
+        step += 1
+        if step > cfg.warmup_steps:
+          owed += cfg.utd * n
+          pairs = int(owed // 2)
+          # Every buffer must hold a valid transition (checked until it does).
+          ready = ready or int(jnp.min(jax.vmap(replay.num_valid)(buffers))) > 0
+          if pairs and ready:
+            agents, m = _update(agents, buffers, k_upd, pairs, cfg.sac)
+            owed -= 2 * pairs
+            metrics = m
+        wall = time.perf_counter() - t0
+        for i in np.flatnonzero(truncated):
+          a = i // n
+          recent.append(float(info["episode_return"][i]))
+          row = dict(step=step, agent=a, seed=cfg.seeds[a],
+                     episode_return=float(info["episode_return"][i]), wall_s=round(wall, 2),
+                     agent_steps_per_s=round((step - start) * k * n / max(wall, 1e-9), 1))
+          row.update({f: float(np.mean(metrics[f][a])) for f in fields[6:] if f in metrics})
+          writer.writerow(row)
+        if bar is not None and (step % cfg.log_every == 0 or step == cfg.steps):
+          bar.update(step - bar.n)
+          if recent:
+            bar.set_postfix(ret=f"{np.mean(recent[-10 * k:]):.1f}",
+                            sps=f"{(step - start) * k * n / wall:.0f}")
+          log_file.flush()
+        if cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
+          _save(manager, step, agents, key)
+      if manager.latest_step() != step:
+        _save(manager, step, agents, key)
+    finally:
+      for s, handler in previous.items():
+        signal.signal(s, handler)
+      log_file.close()
+      if bar is not None:
+        bar.close()
+  summary = dict(task=cfg.task, seeds=list(cfg.seeds), steps=step,
+                 interrupted=stop["signal"] is not None, wall_s=time.perf_counter() - t0,
+                 final_return=plot_learning_curve(log_path, os.path.join(
+                     cfg.out_dir, "learning_curve.png"), cfg.seeds))
+  with open(os.path.join(cfg.out_dir, "summary.json"), "w") as f:
+    json.dump(summary, f, indent=1)
+  return summary
+
+
+def plot_learning_curve(log_path: str, png_path: str, seeds) -> dict:
+  """Episode return against step per agent (PNG); returns each agent's last return."""
+  import matplotlib
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt
+  with open(log_path) as f:
+    rows = list(csv.DictReader(f))
+  fig, ax = plt.subplots(figsize=(6, 3.5))
+  last = {}
+  for a, seed in enumerate(seeds):
+    mine = [r for r in rows if int(r["agent"]) == a]
+    if mine:
+      ax.plot([int(r["step"]) for r in mine], [float(r["episode_return"]) for r in mine],
+              label=f"seed {seed}")
+      last[str(seed)] = float(mine[-1]["episode_return"])
+  ax.set_xlabel("training step")
+  ax.set_ylabel("episode return")
+  ax.legend()
+  fig.tight_layout()
+  fig.savefig(png_path, dpi=100)
+  plt.close(fig)
+  return last
