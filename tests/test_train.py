@@ -104,3 +104,47 @@ def test_interrupted_run_resumes_where_it_stopped(tmp_path):
     loop.train(loop.TrainConfig(steps=5, out_dir=str(tmp_path / "empty"), **CFG),
                resume=True, progress=False)
   jax.config.update("jax_compilation_cache_dir", None)
+
+
+def test_agents_sharded_over_two_devices_match_one_device():
+  script = textwrap.dedent("""
+      import jax, jax.numpy as jnp, numpy as np
+      from train import loop, replay, sac
+      assert jax.device_count() == 2
+      cfg = sac.SACConfig(batch_size=8, conv_channels=4, feature_dim=8, hidden_dim=16)
+      agents = jax.vmap(lambda k: sac.init_agent(k, (16, 16, 9), 1, cfg))(
+          jax.random.split(jax.random.key(0), 2))
+      one = replay.init(64, 2, (16, 16, 3), 1, 3)
+      buffers = jax.tree.map(lambda x: jnp.broadcast_to(x, (2,) + x.shape), one)
+      rng = np.random.default_rng(0)
+      for t in range(12):
+        buffers = loop._add(buffers, jnp.asarray(rng.integers(0, 255, (2, 2, 16, 16, 3), np.uint8)),
+                            jnp.full((2, 2), t % 6 == 0), jnp.asarray(rng.uniform(-1, 1, (2, 2, 1)), jnp.float32),
+                            jnp.asarray(rng.uniform(0, 1, (2, 2)), jnp.float32))
+      mesh = loop._mesh(2)
+      assert mesh is not None
+      keys = jax.random.split(jax.random.key(3), 2)
+      copy = lambda t: jax.tree.map(lambda x: x.copy() if hasattr(x, "copy") else x, t)
+      agents2, buffers2 = copy(agents), copy(buffers)  # _update donates the agents
+      plain, m1 = loop._update(agents, buffers, keys, 2, cfg)
+      sharded, m2 = loop._update(loop._put(agents2, mesh), loop._put(buffers2, mesh),
+                                 loop._put(keys, mesh), 2, cfg, mesh=mesh)
+      leaf = jax.tree.leaves(sharded.params)[0]
+      assert len(leaf.sharding.device_set) == 2, leaf.sharding
+      for name in m1:
+        np.testing.assert_allclose(np.asarray(m1[name]), np.asarray(m2[name]), rtol=1e-4,
+                                   atol=1e-6, err_msg=name)
+      for a, b in zip(jax.tree.leaves(plain.params), jax.tree.leaves(sharded.params)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=2e-3)
+      obs = loop._put(jnp.asarray(rng.integers(0, 255, (2, 2, 16, 16, 9), np.uint8)), mesh)
+      np.testing.assert_allclose(
+          np.asarray(loop._act(plain, jax.device_put(obs, jax.devices()[0]), keys, random=False)),
+          np.asarray(loop._act(sharded, obs, loop._put(keys, mesh), random=False, mesh=mesh)),
+          atol=1e-3)
+      print("ok")
+      """)
+  env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
+             JAX_PLATFORMS="cpu")
+  out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                       env=env, timeout=600)
+  assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-3000:]

@@ -125,27 +125,43 @@ def check_config(cfg: TrainConfig) -> None:
 
 
 # Jitted pieces (vmapped over the agent axis K) ------------------------------------
+#
+# With several devices the agent axis is split with `shard_map` (each device runs
+# the vmapped function on its own agents), not left to XLA's automatic
+# partitioning: on CPU that partitioned the vmapped convolutions wrongly (encoder
+# outputs off by up to 1.8; tests/test_train.py checks the sharded run against
+# the unsharded one).
 
 
-@functools.partial(jax.jit, static_argnames=("random",))
-def _act(agents: sac.AgentState, obs: jax.Array, key: jax.Array, random: bool):
+def _agent_parallel(fn, mesh):
+  """`fn` (every argument and output with the leading agent axis) per device."""
+  if mesh is None:
+    return fn
+  spec = jax.sharding.PartitionSpec("agents")
+  return jax.shard_map(fn, mesh=mesh, in_specs=spec, out_specs=spec)
+
+
+@functools.partial(jax.jit, static_argnames=("random", "mesh"))
+def _act(agents: sac.AgentState, obs: jax.Array, keys: jax.Array, random: bool, mesh=None):
   """Actions in [−1, 1] for obs (K, N, H, W, C): the policies', or uniform."""
-  k, n = obs.shape[:2]
-  keys = jax.random.split(key, k)
-  if random:
-    size = agents.networks.actor.action_size
-    return jax.vmap(lambda kk: jax.random.uniform(kk, (n, size), minval=-1, maxval=1))(keys)
-  return jax.vmap(lambda a, o, kk: sac.act(a, o, kk))(agents, obs, keys)
+  size = agents.networks.actor.action_size
+
+  def fn(agents, obs, keys):
+    if random:
+      return jax.vmap(lambda o, k: jax.random.uniform(k, (o.shape[0], size), minval=-1,
+                                                      maxval=1))(obs, keys)
+    return jax.vmap(lambda a, o, k: sac.act(a, o, k))(agents, obs, keys)
+  return _agent_parallel(fn, mesh)(agents, obs, keys)
 
 
-@functools.partial(jax.jit, donate_argnums=(0,))
-def _add(buffers, frame, first, action, reward):
-  return jax.vmap(replay.add)(buffers, frame, first, action, reward)
+@functools.partial(jax.jit, static_argnames=("mesh",), donate_argnums=(0,))
+def _add(buffers, frame, first, action, reward, mesh=None):
+  return _agent_parallel(jax.vmap(replay.add), mesh)(buffers, frame, first, action, reward)
 
 
-@functools.partial(jax.jit, static_argnames=("pairs", "config"), donate_argnums=(0,))
-def _update(agents, buffers, key, pairs: int, config: sac.SACConfig):
-  """`pairs` × `update_pair` for every agent, one scan; returns the mean metrics."""
+@functools.partial(jax.jit, static_argnames=("pairs", "config", "mesh"), donate_argnums=(0,))
+def _update(agents, buffers, keys, pairs: int, config: sac.SACConfig, mesh=None):
+  """`pairs` × `update_pair` for every agent, one scan each; the mean metrics (K,)."""
   def one_agent(agent, buffer, key):
     def body(agent, k):
       k_sample, k_update = jax.random.split(k)
@@ -154,21 +170,23 @@ def _update(agents, buffers, key, pairs: int, config: sac.SACConfig):
       return sac.update_pair(agent, batches, k_update, config)
     agent, metrics = jax.lax.scan(body, agent, jax.random.split(key, pairs))
     return agent, jax.tree.map(jnp.mean, metrics)
-  keys = jax.random.split(key, jax.tree.leaves(buffers)[0].shape[0])
-  return jax.vmap(one_agent)(agents, buffers, keys)
+  return _agent_parallel(jax.vmap(one_agent), mesh)(agents, buffers, keys)
 
 
-def _sharding(k: int):
-  """NamedSharding of the agent axis over the local devices, or None."""
+def _mesh(k: int):
+  """A mesh of the local devices over the agent axis, or None (one device, or
+  K not a multiple of the device count)."""
   devices = jax.local_devices()
   if len(devices) < 2 or k % len(devices):
     return None
-  mesh = jax.sharding.Mesh(np.array(devices), ("agents",))
-  return jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("agents"))
+  return jax.sharding.Mesh(np.array(devices), ("agents",))
 
 
-def _put(tree, sharding):
-  return tree if sharding is None else jax.device_put(tree, sharding)
+def _put(tree, mesh):
+  if mesh is None:
+    return tree
+  return jax.device_put(tree, jax.sharding.NamedSharding(
+      mesh, jax.sharding.PartitionSpec("agents")))
 
 
 # Checkpoints ------------------------------------------------------------------------
@@ -222,7 +240,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
     obs_shape = env.single_observation_space.shape
     action_size = env.task.action_size
     low, high = env.single_action_space.low, env.single_action_space.high
-    sharding = _sharding(k)
+    mesh = _mesh(k)
     agents = jax.vmap(lambda s: sac.init_agent(jax.random.key(s), obs_shape, action_size,
                                                cfg.sac))(jnp.asarray(cfg.seeds))
     one = replay.init(cfg.buffer_capacity, n, obs_shape[:2] + (3,), action_size,
@@ -236,7 +254,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
       if restored is None:
         raise FileNotFoundError(f"--resume: no checkpoint in {cfg.out_dir}/checkpoints")
       agents, key, start = restored
-    agents, buffers = _put(agents, sharding), _put(buffers, sharding)
+    agents, buffers = _put(agents, mesh), _put(buffers, mesh)
 
     stop = {"signal": None}
     previous = {s: signal.signal(s, lambda sig, _: stop.update(signal=sig))
@@ -260,13 +278,14 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
       step = start
       while step < cfg.steps and stop["signal"] is None:
         key, k_act, k_upd = jax.random.split(key, 3)
-        obs_k = _put(jnp.asarray(obs.reshape((k, n) + obs.shape[1:])), sharding)
-        action = _act(agents, obs_k, k_act, random=step < cfg.warmup_steps)
+        obs_k = _put(jnp.asarray(obs.reshape((k, n) + obs.shape[1:])), mesh)
+        action = _act(agents, obs_k, _put(jax.random.split(k_act, k), mesh),
+                      random=step < cfg.warmup_steps, mesh=mesh)
         action_host = np.asarray(action).reshape(k * n, action_size)
         env_action = low + (action_host + 1.0) * 0.5 * (high - low)
         next_obs, reward, _, truncated, info = env.step(env_action.astype(np.float32))
-        buffers = _add(buffers, obs_k[..., -3:], jnp.asarray(first.reshape(k, n)), action,
-                       jnp.asarray(reward.reshape(k, n)))
+        buffers = _add(buffers, obs_k[..., -3:], _put(jnp.asarray(first.reshape(k, n)), mesh),
+                       action, _put(jnp.asarray(reward.reshape(k, n)), mesh), mesh=mesh)
         obs, first = next_obs, info["episode_step"] == 0
         step += 1
         if step > cfg.warmup_steps:
@@ -275,7 +294,8 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
           # Every buffer must hold a valid transition (checked until it does).
           ready = ready or int(jnp.min(jax.vmap(replay.num_valid)(buffers))) > 0
           if pairs and ready:
-            agents, m = _update(agents, buffers, k_upd, pairs, cfg.sac)
+            agents, m = _update(agents, buffers, _put(jax.random.split(k_upd, k), mesh),
+                                pairs, cfg.sac, mesh=mesh)
             owed -= 2 * pairs
             metrics = m
         wall = time.perf_counter() - t0
