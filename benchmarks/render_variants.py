@@ -42,6 +42,7 @@ VARIANTS = [
 
 def _worker(args):
   cfg, frames, size, seed = args
+  os.environ["JAX_PLATFORMS"] = "cpu"  # the looks are drawn with JAX: keep it off the GPU
   os.environ.setdefault("MUJOCO_GL", "egl")
   os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
   import mujoco

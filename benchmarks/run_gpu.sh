@@ -27,6 +27,12 @@ have augment_h100.jsonl || python3 -m benchmarks.augment --out $R/augment_h100.j
 # 3. The render pool against the naive one-Renderer loop, EGL.
 have render_h100.jsonl || python3 -m benchmarks.render --batches 1024,4096 --workers 4,16 \
   --qualities exact,fast,fastest --out $R/render_h100.jsonl
+# 3b. Which part of the tiled render loop limits the pool.
+have render_variants_h100.jsonl || python3 -m benchmarks.render_variants --procs 1,4,16 \
+  --out $R/render_variants_h100.jsonl
+# 3c. The pixel env (walker-walk, frame skip 2) against the original dm_control pipeline.
+have env_h100.jsonl || python3 -m benchmarks.env --sizes 1024,256,16,1 --qualities fastest \
+  --out $R/env_h100.jsonl
 # 4. Every task at every size (task wrapper only), as far as the budget allows.
 #    Autotuning off: concurrent compiles otherwise queue on the GPU autotuner.
 left=$((BUDGET_S - SECONDS))
