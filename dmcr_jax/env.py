@@ -46,6 +46,7 @@ from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
 from dmcr_jax import models, physics_env
+from dmcr_jax.checks import positive_int
 from dmcr_jax.visuals import render_model as rmod
 from dmcr_jax.visuals.factors import active_factors
 from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, SeedRange
@@ -65,12 +66,6 @@ def default_frame_skip(task: str) -> int:
   """The action repeat a task uses by default (see `ACTION_REPEAT`)."""
   domain, _ = models.split_name(task)
   return ACTION_REPEAT.get(task, _DOMAIN_REPEAT.get(domain, 4))
-
-
-def _positive_int(name: str, value) -> int:
-  if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-    raise ValueError(f"{name} must be a positive int, got {value!r}")
-  return int(value)
 
 
 def _seed_source(visual_seeds, num_envs: int) -> SeedRange | np.ndarray:
@@ -107,12 +102,12 @@ class PixelVectorEnv(gymnasium.vector.VectorEnv):
                quality: str = "exact", gl: str | None = None, copy_obs: bool = True,
                solver_iterations: int | None = None, ls_iterations: int | None = None):
     domain, _ = models.split_name(task)
-    n = _positive_int("num_envs", num_envs)
-    self.frame_skip = _positive_int(
+    n = positive_int("num_envs", num_envs)
+    self.frame_skip = positive_int(
         "frame_skip", default_frame_skip(task) if frame_skip is None else frame_skip)
-    self.frame_stack = _positive_int("frame_stack", frame_stack)
+    self.frame_stack = positive_int("frame_stack", frame_stack)
     h, w = (image_size, image_size) if np.ndim(image_size) == 0 else tuple(image_size)
-    self.height, self.width = _positive_int("image height", h), _positive_int("image width", w)
+    self.height, self.width = positive_int("image height", h), positive_int("image width", w)
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
       raise ValueError(f"seed must be an int, got {seed!r}")
     active_factors(domain, vary)  # validates `vary`, listing the factors
@@ -129,7 +124,6 @@ class PixelVectorEnv(gymnasium.vector.VectorEnv):
     self.render_mode = "rgb_array"
     self.copy_obs = bool(copy_obs)
     self.episode_length = -(-self.task.time_limit // self.frame_skip)
-    self._pool = None
     self._pool = RenderPool(task, max_batch=n, height=self.height, width=self.width,
                             camera=camera, workers=min(n, workers or default_workers()),
                             quality=quality, gl=gl, frame_stack=self.frame_stack)
@@ -289,7 +283,7 @@ class PixelVectorEnv(gymnasium.vector.VectorEnv):
     if self._pool is None:
       raise RuntimeError("the env is closed")
     self._update_looks(np.asarray(host["visual_seed"]))
-    return self._pool.render(host["qpos"].astype(np.float64), self._looks,
+    return self._pool.render(host["qpos"], self._looks,
                              host["variables"], restart=restart, copy_out=False)
 
   def _info(self, host: dict) -> dict:

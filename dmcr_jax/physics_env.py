@@ -81,16 +81,12 @@ def _reset_where(task: Task, seeds: SeedSource, es: EnvState, mask: jax.Array) -
 def init(task: Task, seeds: SeedSource, key: jax.Array, num_envs: int) -> EnvState:
   """Starts N envs: every env gets its own key from `key` and a first episode."""
   n = int(num_envs)
-  blank = jax.eval_shape(lambda: jax.vmap(task.reset)(jax.random.split(jax.random.key(0), n)))
-  es = EnvState(
-      task=jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), blank),
-      visual_seed=jnp.zeros((n,), jnp.int32),
-      key=jax.random.split(key, n),
-      needs_reset=jnp.ones((n,), bool),
-      episode=jnp.full((n,), -1, jnp.int32),
-      episode_step=jnp.zeros((n,), jnp.int32),
-      episode_return=jnp.zeros((n,), jnp.float32))
-  return _reset_where(task, seeds, es, es.needs_reset)
+  state, seed, keys = jax.vmap(lambda k, i: _reset_one(task, seeds, k, i))(
+      jax.random.split(key, n), jnp.arange(n))
+  return EnvState(task=state, visual_seed=seed, key=keys,
+                  needs_reset=jnp.zeros((n,), bool), episode=jnp.zeros((n,), jnp.int32),
+                  episode_step=jnp.zeros((n,), jnp.int32),
+                  episode_return=jnp.zeros((n,), jnp.float32))
 
 
 def skip_step(task: Task, state: State, action: jax.Array, frame_skip: int):

@@ -24,8 +24,9 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from flax import struct
+
+from dmcr_jax.checks import positive_int
 
 
 class Batch(NamedTuple):
@@ -84,12 +85,6 @@ class ReplayBuffer:
     return self.frames.shape[1]
 
 
-def _positive_int(name: str, value) -> int:
-  if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-    raise ValueError(f"{name} must be a positive int, got {value!r}")
-  return int(value)
-
-
 def init(capacity: int, num_envs: int, frame_shape: tuple[int, int, int],
          action_size: int, frame_stack: int) -> ReplayBuffer:
   """An empty buffer, allocated on the default device.
@@ -109,17 +104,17 @@ def init(capacity: int, num_envs: int, frame_shape: tuple[int, int, int],
     ValueError: a size is not a positive int, `frame_shape` is not three of
       them, or T < frame_stack + 1 (a ring must hold a stack and its next frame).
   """
-  capacity = _positive_int("capacity", capacity)
-  n = _positive_int("num_envs", num_envs)
-  a = _positive_int("action_size", action_size)
-  k = _positive_int("frame_stack", frame_stack)
+  capacity = positive_int("capacity", capacity)
+  n = positive_int("num_envs", num_envs)
+  a = positive_int("action_size", action_size)
+  k = positive_int("frame_stack", frame_stack)
   try:
     shape = tuple(frame_shape)
   except TypeError:
     shape = ()
   if len(shape) != 3:
     raise ValueError(f"frame_shape must be (H, W, C), got {frame_shape!r}")
-  shape = tuple(_positive_int(f"frame_shape[{i}]", s) for i, s in enumerate(shape))
+  shape = tuple(positive_int(f"frame_shape[{i}]", s) for i, s in enumerate(shape))
   t = capacity // n
   if t < k + 1:
     raise ValueError(
@@ -241,7 +236,7 @@ def sample(buffer: ReplayBuffer, key: jax.Array, batch_size: int) -> Batch:
     A `Batch`: obs/next_obs uint8 (B, H, W, C·k), action float32 (B, A),
     reward float32 (B,), discount float32 (B,) (1 for valid transitions).
   """
-  b = _positive_int("batch_size", batch_size)
+  b = positive_int("batch_size", batch_size)
   n, t, h, w, c = buffer.frames.shape
   k = buffer.frame_stack
   valid = valid_mask(buffer).reshape(-1)

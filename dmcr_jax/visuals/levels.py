@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dmcr_jax.checks import positive_int
 from dmcr_jax.visuals.params import MAX_SEED
 
 _SPLIT = 2**30
@@ -87,9 +88,8 @@ def levels(num_levels: int, start: int = 0) -> SeedRange:
   Raises:
     ValueError: if the range would leave `TRAIN_SEEDS` (reach the test range).
   """
-  if not isinstance(num_levels, (int, np.integer)) or num_levels < 1:
-    raise ValueError(f"num_levels must be a positive int, got {num_levels!r}")
-  return check_training_range(SeedRange(start, start + int(num_levels)))
+  num_levels = positive_int("num_levels", num_levels)
+  return check_training_range(SeedRange(start, start + num_levels))
 
 
 def check_training_range(r: SeedRange) -> SeedRange:

@@ -178,7 +178,6 @@ class WorkerPool:
       self._outputs = [self._alloc(output) for _ in range(buffers)]
       self._out_names = [shm.name for shm in self._segments[-buffers:]]
       self._cur = 0
-      self.output = self._outputs[0]
       for w in range(self.num_workers):
         self._start(w)
       for w in range(self.num_workers):
@@ -257,7 +256,6 @@ class WorkerPool:
         proc.join(2)
       self._kill(w)
     self.inputs = {}
-    self.output = None
     self._outputs = []
     for shm in self._segments:
       try:
@@ -279,6 +277,11 @@ class WorkerPool:
     except Exception:  # noqa: BLE001 - interpreter shutdown
       pass
 
+  @property
+  def output(self) -> np.ndarray | None:
+    """The output array of the current call (None once closed)."""
+    return self._outputs[self._cur] if self._outputs else None
+
   # Calls -------------------------------------------------------------------------
 
   def slices(self, batch: int) -> list[tuple[int, int]]:
@@ -299,7 +302,6 @@ class WorkerPool:
       raise ValueError(f"batch must be in [1, {self.max_batch}], got {batch}")
     self._call_id += 1
     self._cur = (self._call_id - 1) % len(self._outputs)
-    self.output = self._outputs[self._cur]
     pending = {w: s for w, s in enumerate(self.slices(batch)) if s[1] > s[0]}
     tries = {w: 0 for w in pending}
     deadline = {}

@@ -33,6 +33,7 @@ from typing import Any, Mapping
 import mujoco
 import numpy as np
 
+from dmcr_jax.checks import positive_int
 from dmcr_jax.visuals import render_model as rmod
 from dmcr_jax.visuals.params import VisualParams
 from dmcr_jax.visuals.pool import ArraySpec, WorkerPool
@@ -158,10 +159,7 @@ class RenderPool:
     check_quality(quality)
     if int(height) < 1 or int(width) < 1:
       raise ValueError(f"frame size must be positive, got {height}x{width}")
-    if isinstance(frame_stack, bool) or not isinstance(frame_stack, (int, np.integer)) \
-        or frame_stack < 1:
-      raise ValueError(f"frame_stack must be a positive int, got {frame_stack!r}")
-    self.frame_stack = int(frame_stack)
+    self.frame_stack = positive_int("frame_stack", frame_stack)
     workers = default_workers() if workers is None else int(workers)
     self.task, self.domain, self.variables = task, domain, variables
     self.height, self.width, self.gl, self.quality = int(height), int(width), gl, quality
