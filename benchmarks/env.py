@@ -62,12 +62,13 @@ def original_pipeline(task: str, frame_skip: int, size: int, steps: int,
 
 
 def bench_env(task: str, n: int, quality: str, workers: int | None, frame_skip: int,
-              size: int, seconds: float, warmup: int = 3) -> dict:
+              size: int, seconds: float, warmup: int = 3, copy_obs: bool = True,
+              ls_iterations: int | None = None) -> dict:
   """Agent-steps/s and the time split of `dmcr_jax.make(task, n)`."""
   t0 = time.perf_counter()
   env = dmcr_jax.make(task, num_envs=n, visual_seeds=np.arange(1, n + 1), vary="all",
                       frame_skip=frame_skip, image_size=size, quality=quality,
-                      workers=workers)
+                      workers=workers, copy_obs=copy_obs, ls_iterations=ls_iterations)
   with env:
     start_s = time.perf_counter() - t0
     rng = np.random.default_rng(0)
@@ -86,6 +87,7 @@ def bench_env(task: str, n: int, quality: str, workers: int | None, frame_skip: 
     split = {f"{k}_ms": v / steps * 1e3 for k, v in env.timings.items()}
     other = wall / steps * 1e3 - sum(split.values())
     return dict(num_envs=n, quality=quality, workers=env._pool.num_workers, steps=steps,
+                copy_obs=copy_obs, ls_iterations=ls_iterations or "default",
                 start_s=start_s, warmup_s=warm_s, step_ms=wall / steps * 1e3,
                 agent_steps_per_s=n * steps / wall, other_ms=other, **split)
 
@@ -100,14 +102,17 @@ def markdown(rows: list[dict]) -> str:
            f"{original['agent_steps_per_s']:,.0f} agent-steps/s "
            f"({original['step_ms']:.1f} ms a step, {original['rebuild_ms']:.0f} ms a rebuild; "
            f"{original['agent_steps_per_s_no_rebuild']:,.0f} without rebuilds).", "",
-           "| device | quality | envs | workers | stacked by | agent-steps/s | original "
+           "| device | quality | envs | workers | stacked by | copy_obs | line search "
+           "| agent-steps/s | original "
            "| × original | physics ms | transfer ms | render ms | copy / stack ms | UTC |",
-           "|---|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---|"]
+           "|---|---|---:|---:|---|---|---|---:|---:|---:|---:|---:|---:|---:|---|"]
   for r in rows:
     by_workers = "copy_ms" in r
     lines.append(
         f"| {r['device']} | {r['quality']} | {r['num_envs']:,} | {r['workers']} | "
-        f"{'workers' if by_workers else 'main process'} | {r['agent_steps_per_s']:,.0f} | "
+        f"{'workers' if by_workers else 'main process'} | "
+        f"{'yes' if r.get('copy_obs', True) else 'no'} | {r.get('ls_iterations', 'default')} | "
+        f"{r['agent_steps_per_s']:,.0f} | "
         f"{r['original_agent_steps_per_s']:,.0f} | {r['speedup']:.1f} | "
         f"{r['physics_ms']:.1f} | {r['transfer_ms']:.1f} | {r['render_ms']:.1f} | "
         f"{r['copy_ms'] if by_workers else r['stack_ms']:.1f} | {r['time_utc'][11:16]} |")
@@ -125,6 +130,11 @@ def main(argv=None) -> None:
   p.add_argument("--image-size", type=int, default=84)
   p.add_argument("--seconds", type=float, default=5.0, help="timed seconds per row")
   p.add_argument("--original-steps", type=int, default=200)
+  p.add_argument("--no-copy", action="store_true",
+                 help="make(copy_obs=False): observations are views of shared memory")
+  p.add_argument("--ls-iterations", default="default",
+                 help="comma-separated MJX line-search caps to run ('default': the "
+                      "env's own)")
   p.add_argument("--out", default=None, help="JSONL path (appended to); .md beside")
   args = p.parse_args(argv)
   import jax
@@ -137,11 +147,12 @@ def main(argv=None) -> None:
                                args.original_steps)
   rows = [dict(common, kind="original", **original)]
   _emit(rows[0], args.out)
+  budgets = [None if b == "default" else int(b) for b in args.ls_iterations.split(",")]
   for quality in args.qualities.split(","):
-    for n in [int(s) for s in args.sizes.split(",")]:
+    for n, ls in [(int(s), b) for s in args.sizes.split(",") for b in budgets]:
       row = dict(common, kind="env", **bench_env(
           args.task, n, quality, args.workers, args.frame_skip, args.image_size,
-          args.seconds))
+          args.seconds, copy_obs=not args.no_copy, ls_iterations=ls))
       row["original_agent_steps_per_s"] = original["agent_steps_per_s"]
       row["speedup"] = row["agent_steps_per_s"] / original["agent_steps_per_s"]
       rows.append(row)

@@ -33,6 +33,9 @@ CFG = dict(task="pendulum-swingup", action_repeat=100, image_size=16, buffer_cap
     (["--visual-seeds", "some"], "invalid literal"),
     (["--image-size", "8"], "image_size must be >= 16"),
     (["--buffer-capacity", "3"], "buffer_capacity must be at least"),
+    (["--dtype", "float16"], "float32, bfloat16"),
+    (["--agent-loop", "pmap"], "vmap, map"),
+    (["--aug", "drq,drq"], "distinct"),
 ])
 def test_bad_arguments_fail_before_anything_is_built(argv, match, capsys):
   with pytest.raises(SystemExit):
@@ -100,13 +103,18 @@ def test_interrupted_run_resumes_where_it_stopped(tmp_path):
     rows = list(csv.DictReader(f))
   assert {r["agent"] for r in rows} == {"0", "1"}
   assert os.path.exists(os.path.join(out, "learning_curve.png"))
+  restored_cfg, agents, step = loop.load_run(out)
+  assert step == stopped + 15 and restored_cfg == cfg
+  assert agents.step.shape == (2,) and int(agents.step[0]) > 0
+  with pytest.raises(FileExistsError, match="--resume"):
+    loop.train(cfg, progress=False)  # a new run would overwrite this one
   with pytest.raises(FileNotFoundError, match="no checkpoint"):
     loop.train(loop.TrainConfig(steps=5, out_dir=str(tmp_path / "empty"), **CFG),
                resume=True, progress=False)
   jax.config.update("jax_compilation_cache_dir", None)
 
 
-def test_agents_sharded_over_two_devices_match_one_device():
+def test_agents_sharded_over_two_devices_or_mapped_match_one_vmapped_call():
   script = textwrap.dedent("""
       import jax, jax.numpy as jnp, numpy as np
       from train import loop, replay, sac
@@ -125,8 +133,11 @@ def test_agents_sharded_over_two_devices_match_one_device():
       assert mesh is not None
       keys = jax.random.split(jax.random.key(3), 2)
       copy = lambda t: jax.tree.map(lambda x: x.copy() if hasattr(x, "copy") else x, t)
-      agents2, buffers2 = copy(agents), copy(buffers)  # _update donates the agents
+      agents2, buffers2, agents3 = copy(agents), copy(buffers), copy(agents)  # _update donates
       plain, m1 = loop._update(agents, buffers, keys, 2, cfg)
+      mapped, _ = loop._update(agents3, buffers, keys, 2, cfg, agent_loop="map")
+      for a, b in zip(jax.tree.leaves(plain.params), jax.tree.leaves(mapped.params)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=2e-3)
       sharded, m2 = loop._update(loop._put(agents2, mesh), loop._put(buffers2, mesh),
                                  loop._put(keys, mesh), 2, cfg, mesh=mesh)
       leaf = jax.tree.leaves(sharded.params)[0]

@@ -2,6 +2,10 @@
 
     train --task cartpole-balance --steps 50000 --seeds 0,1,2 --aug drq
 
+One agent per seed and augmentation (`--aug drq,cj+drq --seeds 0,1,2`: 6 agents,
+trained together in one process). `--steps` counts the paper's training steps
+(transitions stored) per agent; with `--num-envs N` an agent collects N per step.
+
 Arguments are checked before anything is compiled. Outputs go to `--out`
 (default `runs/<task>-<aug>`): log.csv, learning_curve.png, summary.json and
 orbax checkpoints; `--resume` continues from the latest checkpoint (see
@@ -23,8 +27,11 @@ def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
   d, s = TrainConfig(), SACConfig()
   p = argparse.ArgumentParser(prog="train", description=__doc__.splitlines()[0])
   p.add_argument("--task", default=d.task, help="a DMCR task (default: %(default)s)")
-  p.add_argument("--aug", default=s.aug, help="augmentation name, e.g. drq, cj+drq, nr+drq")
-  p.add_argument("--steps", type=int, default=d.steps, help="training steps per env")
+  p.add_argument("--aug", default=s.aug,
+                 help="augmentation name, e.g. drq, cj+drq, nr+drq; comma-separated "
+                      "names train one agent per name and seed")
+  p.add_argument("--steps", type=int, default=d.steps,
+                 help="training steps (transitions) per agent")
   p.add_argument("--seeds", default="0", help="comma-separated: one agent per seed")
   p.add_argument("--num-envs", type=int, default=d.num_envs, help="envs per agent")
   p.add_argument("--visual-seeds", default=str(d.visual_seeds),
@@ -32,13 +39,18 @@ def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
   p.add_argument("--vary", default=d.vary, help="factors the visual seeds change")
   p.add_argument("--action-repeat", type=int, default=None,
                  help="default: the paper's Table 4 value for the task")
-  p.add_argument("--utd", type=float, default=d.utd, help="updates per agent step per env")
-  p.add_argument("--warmup-steps", type=int, default=d.warmup_steps)
+  p.add_argument("--utd", type=float, default=d.utd, help="updates per training step")
+  p.add_argument("--warmup-steps", type=int, default=d.warmup_steps,
+                 help="random-action training steps per agent before learning")
   p.add_argument("--buffer-capacity", type=int, default=d.buffer_capacity)
   p.add_argument("--batch-size", type=int, default=s.batch_size)
   p.add_argument("--image-size", type=int, default=d.image_size)
   p.add_argument("--quality", default=d.quality, help="render preset: exact, fast, fastest")
   p.add_argument("--workers", type=int, default=None, help="render workers")
+  p.add_argument("--dtype", default=s.compute_dtype,
+                 help="compute dtype of the networks: float32 or bfloat16")
+  p.add_argument("--agent-loop", default=d.agent_loop,
+                 help="how K agents' updates are batched: vmap or map")
   p.add_argument("--checkpoint-every", type=int, default=d.checkpoint_every)
   p.add_argument("--log-every", type=int, default=d.log_every)
   p.add_argument("--out", default=None, help="output folder (default: runs/<task>-<aug>)")
@@ -47,15 +59,17 @@ def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
   a = p.parse_args(argv)
   try:
     seeds = tuple(int(x) for x in a.seeds.split(","))
-    sac_cfg = dataclasses.replace(s, aug=a.aug, batch_size=a.batch_size)
+    sac_cfg = dataclasses.replace(s, aug=a.aug, batch_size=a.batch_size,
+                                  compute_dtype=a.dtype)
     visual = a.visual_seeds if a.visual_seeds.startswith("levels:") else int(a.visual_seeds)
     cfg = TrainConfig(task=a.task, steps=a.steps, seeds=seeds, num_envs=a.num_envs,
                       action_repeat=a.action_repeat, visual_seeds=visual, vary=a.vary,
                       warmup_steps=a.warmup_steps, utd=a.utd,
                       buffer_capacity=a.buffer_capacity, image_size=a.image_size,
                       quality=a.quality, workers=a.workers, log_every=a.log_every,
-                      checkpoint_every=a.checkpoint_every,
-                      out_dir=a.out or f"runs/{a.task}-{a.aug}", sac=sac_cfg)
+                      checkpoint_every=a.checkpoint_every, agent_loop=a.agent_loop,
+                      out_dir=a.out or f"runs/{a.task}-{a.aug.replace(',', '_')}",
+                      sac=sac_cfg)
     check_config(cfg)
   except ValueError as e:
     p.error(str(e))
@@ -64,7 +78,10 @@ def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
 
 def main(argv=None) -> None:
   cfg, a = parse(argv)
-  summary = train(cfg, resume=a.resume, progress=not a.no_progress)
+  try:
+    summary = train(cfg, resume=a.resume, progress=not a.no_progress)
+  except (FileExistsError, FileNotFoundError) as e:
+    sys.exit(f"train: error: {e}")
   print(json.dumps(summary, indent=1))
   if summary["interrupted"]:
     sys.exit(130)

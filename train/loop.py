@@ -9,10 +9,27 @@ buffer (jitted, buffers donated), and, once the warm-up is over, run the updates
 owed so far as one `lax.scan` over `sac.update_pair` (so "actor and targets every
 2 updates" holds). `utd` gradient updates are owed per agent step of each env.
 
-Steps: `steps` counts agent steps of ONE env of one agent (the paper's "training
-steps": an agent step is `action_repeat` control steps), so with N envs an agent
-sees N·`steps` transitions; the first `warmup_steps` take uniform random actions
-(Table 6: 1,000).
+Agents: one per (augmentation, seed) pair: `seeds` × `sac.aug_names` (e.g.
+``aug="drq,cj+drq"`` with 3 seeds trains 6 agents; an agent's network init
+depends only on its seed, so augmentations are compared from the same start).
+
+Steps: `steps` counts training steps per agent as the paper defines them (its
+Sec. 4: an action taken and its transition stored; one such step is
+`action_repeat` control steps), so with N envs an agent takes ⌈steps/N⌉ vector
+steps of N transitions each; the first `warmup_steps` transitions come from
+uniform random actions (Table 6: 1,000), and `utd` updates are owed per
+transition.
+
+Agent batching (`agent_loop`): "vmap" runs the K agents' updates as one batched
+computation (their convolutions become grouped convolutions); "map" runs them one
+after the other inside the same jitted call (`jax.lax.map`). The default (None)
+picks "map" on accelerators, where benchmarks/learner.py measured it 2.2× faster
+than "vmap" for 8 agents on the H100 (learner_h100.md), and "vmap" on CPU.
+
+Update chunks: on accelerators all updates owed at a step run as one jitted
+`lax.scan`; on CPU, where XLA runs the body of a loop about 4× slower than the
+same ops outside one (measured with this update), each update pair is its own
+jitted call instead (dispatch costs little next to a CPU update).
 
 Checkpoints (orbax, `<out>/checkpoints`): the agents (parameters, optimizer
 states, α, update count), the step counter and the RNG key, every
@@ -40,27 +57,36 @@ import numpy as np
 from train import replay, sac
 
 
+AGENT_LOOPS = ("vmap", "map")
+"""What `TrainConfig.agent_loop` accepts."""
+
+
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
   """What a training run does (every field has the paper's default where it has one).
 
   Attributes:
     task: a DMCR task, e.g. "cartpole-balance".
-    steps: agent steps per env (the paper's training steps, Table 4).
-    seeds: one agent per seed (network init, exploration, dynamics).
+    steps: training steps (transitions) per agent (the paper's Sec. 4 and Table 4).
+    seeds: one agent per seed (network init, exploration, dynamics) and per
+      augmentation in `sac.aug`.
     num_envs: envs per agent.
     action_repeat: None = the paper's Table 4 value for the task.
     visual_seeds: an int (fixed look; 0 = dm_control's) or "levels:<n>"
       (few-shot: every episode draws a look from seeds [0, n)).
     vary: factors the visual seeds change.
-    warmup_steps: random-action steps before learning (Table 6: 1,000).
-    utd: gradient updates per agent step of each env (Table 6: 1).
+    warmup_steps: random-action training steps (transitions) per agent before
+      learning (Table 6: 1,000).
+    utd: gradient updates per training step (Table 6: 1).
     buffer_capacity: transitions per agent (Table 6: 100,000).
     image_size, frame_stack: observation size (Table 6: 84, 3).
     quality: render preset (`dmcr_jax.visuals.tiled.QUALITY`).
     workers: render workers (None: one per core).
     log_every: steps between progress-bar and CSV metric updates.
-    checkpoint_every: steps between checkpoints (0: only at the end / on a signal).
+    checkpoint_every: steps between checkpoints (0: only at the end / on a signal);
+      checkpoints fall on the first vector step at or past each multiple.
+    agent_loop: "vmap" or "map", how the K agents' updates are batched; None picks
+      by backend (module doc).
     out_dir: where the CSV, the PNG and the checkpoints go.
     sac: the learner's hyperparameters.
   """
@@ -81,7 +107,12 @@ class TrainConfig:
   log_every: int = 1000
   checkpoint_every: int = 10_000
   out_dir: str = "runs/default"
+  agent_loop: str | None = None
   sac: sac.SACConfig = sac.SACConfig()
+
+  def agents(self) -> list[tuple[int, str]]:
+    """(seed, augmentation) of each agent, in the order of the agent axis."""
+    return [(seed, aug) for aug in self.sac.aug_names for seed in self.seeds]
 
 
 def parse_visual_seeds(value) -> Any:
@@ -120,6 +151,9 @@ def check_config(cfg: TrainConfig) -> None:
   if cfg.buffer_capacity < cfg.num_envs * (cfg.frame_stack + 1):
     raise ValueError(f"buffer_capacity must be at least num_envs·(frame_stack + 1) = "
                      f"{cfg.num_envs * (cfg.frame_stack + 1)}")
+  if cfg.agent_loop is not None and cfg.agent_loop not in AGENT_LOOPS:
+    raise ValueError(f"agent_loop must be one of {', '.join(AGENT_LOOPS)}, got "
+                     f"{cfg.agent_loop!r}")
   if cfg.image_size < 16:
     raise ValueError(f"image_size must be >= 16 for the encoder, got {cfg.image_size}")
 
@@ -159,18 +193,28 @@ def _add(buffers, frame, first, action, reward, mesh=None):
   return _agent_parallel(jax.vmap(replay.add), mesh)(buffers, frame, first, action, reward)
 
 
-@functools.partial(jax.jit, static_argnames=("pairs", "config", "mesh"), donate_argnums=(0,))
-def _update(agents, buffers, keys, pairs: int, config: sac.SACConfig, mesh=None):
-  """`pairs` × `update_pair` for every agent, one scan each; the mean metrics (K,)."""
+@functools.partial(jax.jit, static_argnames=("pairs", "config", "mesh", "agent_loop",
+                                             "unroll"), donate_argnums=(0,))
+def _update(agents, buffers, keys, pairs: int, config: sac.SACConfig, mesh=None,
+            agent_loop: str = "vmap", unroll: bool = False):
+  """`pairs` × `update_pair` for every agent, one scan each; the mean metrics (K,).
+
+  `agent_loop` "vmap" batches the agents, "map" runs them one after the other;
+  `unroll` unrolls the scan over pairs (for CPU, module doc).
+  """
   def one_agent(agent, buffer, key):
     def body(agent, k):
       k_sample, k_update = jax.random.split(k)
       batches = jax.vmap(lambda kk: replay.sample(buffer, kk, config.batch_size))(
           jax.random.split(k_sample, 2))
       return sac.update_pair(agent, batches, k_update, config)
-    agent, metrics = jax.lax.scan(body, agent, jax.random.split(key, pairs))
+    agent, metrics = jax.lax.scan(body, agent, jax.random.split(key, pairs), unroll=unroll)
     return agent, jax.tree.map(jnp.mean, metrics)
-  return _agent_parallel(jax.vmap(one_agent), mesh)(agents, buffers, keys)
+  if agent_loop == "map" and agents.step.shape[0] > 1:
+    batched = lambda *args: jax.lax.map(lambda a: one_agent(*a), args)
+  else:
+    batched = jax.vmap(one_agent)
+  return _agent_parallel(batched, mesh)(agents, buffers, keys)
 
 
 def _mesh(k: int):
@@ -218,20 +262,88 @@ def _restore(manager, agents, key):
   return state["agents"], jax.random.wrap_key_data(state["key"]), int(state["step"])
 
 
+def save_config(cfg: TrainConfig, out_dir: str) -> None:
+  """Writes `cfg` as `<out_dir>/config.json` (read back by `load_config`)."""
+  with open(os.path.join(out_dir, "config.json"), "w") as f:
+    json.dump(dataclasses.asdict(cfg), f, indent=1)
+
+
+def load_config(out_dir: str) -> TrainConfig:
+  """The `TrainConfig` a run in `out_dir` was started with."""
+  path = os.path.join(out_dir, "config.json")
+  if not os.path.exists(path):
+    raise FileNotFoundError(f"{path} does not exist: is {out_dir!r} a `train` output folder?")
+  with open(path) as f:
+    raw = json.load(f)
+  raw["seeds"] = tuple(raw["seeds"])
+  raw["sac"] = sac.SACConfig(**raw["sac"])
+  return TrainConfig(**raw)
+
+
+def init_agents(cfg: TrainConfig, obs_shape, action_size: int) -> sac.AgentState:
+  """Fresh agents for `cfg.agents()`, stacked along a leading agent axis."""
+  aug_index = {name: i for i, name in enumerate(cfg.sac.aug_names)}
+  specs = cfg.agents()
+  return jax.vmap(lambda s, i: sac.init_agent(jax.random.key(s), obs_shape, action_size,
+                                              cfg.sac, i))(
+      jnp.asarray([seed for seed, _ in specs]), jnp.asarray([aug_index[a] for _, a in specs]))
+
+
+def load_run(out_dir: str, step: int | None = None):
+  """The agents of a `train` run from its checkpoints.
+
+  Args:
+    out_dir: the run's output folder (with config.json and checkpoints/).
+    step: which checkpoint; None = the latest.
+
+  Returns:
+    (cfg, agents with a leading agent axis in `cfg.agents()` order, step).
+
+  Raises:
+    FileNotFoundError: no config.json or no checkpoint.
+  """
+  import dmcr_jax
+  import orbax.checkpoint as ocp
+  cfg = load_config(out_dir)
+  task = dmcr_jax.models.load(cfg.task)
+  obs_shape = (cfg.image_size, cfg.image_size, 3 * cfg.frame_stack)
+  like = {"agents": init_agents(cfg, obs_shape, task.action_size),
+          "key": jax.random.key_data(jax.random.key(0)), "step": np.asarray(0, np.int64)}
+  manager = _checkpointer(out_dir)
+  step = manager.latest_step() if step is None else step
+  if step is None:
+    raise FileNotFoundError(f"no checkpoint in {out_dir}/checkpoints")
+  state = manager.restore(step, args=ocp.args.StandardRestore(like))
+  return cfg, state["agents"], int(state["step"])
+
+
 # The loop ---------------------------------------------------------------------------
 
 
 def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict:
   """Trains `len(cfg.seeds)` agents; returns a summary (also written as JSON).
 
-  Writes `<out_dir>/log.csv` (one row per finished episode: step, agent, seed,
-  return, wall time, agent-steps/s and the latest update metrics),
-  `<out_dir>/learning_curve.png` and `<out_dir>/summary.json`.
+  Writes `<out_dir>/config.json`, `<out_dir>/log.csv` (one row per finished
+  episode: step, agent, seed, augmentation, return, wall time, transitions/s and
+  the latest update metrics), `<out_dir>/learning_curve.png`,
+  `<out_dir>/summary.json` and the checkpoints.
+
+  Raises:
+    ValueError: a bad config (before anything is built).
+    FileExistsError: `out_dir` already holds checkpoints and `resume` is False.
+    FileNotFoundError: `resume` and no checkpoint.
   """
   import dmcr_jax
   check_config(cfg)
   os.makedirs(cfg.out_dir, exist_ok=True)
-  k, n = len(cfg.seeds), cfg.num_envs
+  manager = _checkpointer(cfg.out_dir)
+  if not resume and manager.latest_step() is not None:
+    raise FileExistsError(f"{cfg.out_dir}/checkpoints already holds a run (step "
+                          f"{manager.latest_step()}): pass resume=True (--resume) to "
+                          "continue it, or choose another out_dir (--out)")
+  save_config(cfg, cfg.out_dir)
+  specs = cfg.agents()
+  k, n = len(specs), cfg.num_envs
   env = dmcr_jax.make(cfg.task, num_envs=k * n, visual_seeds=parse_visual_seeds(cfg.visual_seeds),
                       vary=cfg.vary, frame_skip=cfg.action_repeat, frame_stack=cfg.frame_stack,
                       image_size=cfg.image_size, seed=int(cfg.seeds[0]), quality=cfg.quality,
@@ -241,14 +353,14 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
     action_size = env.task.action_size
     low, high = env.single_action_space.low, env.single_action_space.high
     mesh = _mesh(k)
-    agents = jax.vmap(lambda s: sac.init_agent(jax.random.key(s), obs_shape, action_size,
-                                               cfg.sac))(jnp.asarray(cfg.seeds))
+    on_cpu = jax.default_backend() == "cpu"
+    agent_loop = cfg.agent_loop or ("vmap" if on_cpu else "map")
+    agents = init_agents(cfg, obs_shape, action_size)
     one = replay.init(cfg.buffer_capacity, n, obs_shape[:2] + (3,), action_size,
                       cfg.frame_stack)
     buffers = jax.tree.map(lambda x: jnp.broadcast_to(x, (k,) + x.shape), one)
     key = jax.random.key(int(cfg.seeds[0]) + 7919)
     start = 0
-    manager = _checkpointer(cfg.out_dir)
     if resume:
       restored = _restore(manager, agents, key)
       if restored is None:
@@ -260,7 +372,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
     previous = {s: signal.signal(s, lambda sig, _: stop.update(signal=sig))
                 for s in (signal.SIGINT, signal.SIGTERM)}
     log_path = os.path.join(cfg.out_dir, "log.csv")
-    fields = ["step", "agent", "seed", "episode_return", "wall_s", "agent_steps_per_s",
+    fields = ["step", "agent", "seed", "aug", "episode_return", "wall_s", "agent_steps_per_s",
               "critic_loss", "actor_loss", "alpha", "q"]
     new_log = not (resume and os.path.exists(log_path))
     log_file = open(log_path, "w" if new_log else "a", newline="")
@@ -281,39 +393,44 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
         obs_k = _put(jnp.asarray(obs.reshape((k, n) + obs.shape[1:])), mesh)
         action = _act(agents, obs_k, _put(jax.random.split(k_act, k), mesh),
                       random=step < cfg.warmup_steps, mesh=mesh)
+        before = step
         action_host = np.asarray(action).reshape(k * n, action_size)
         env_action = low + (action_host + 1.0) * 0.5 * (high - low)
         next_obs, reward, _, truncated, info = env.step(env_action.astype(np.float32))
         buffers = _add(buffers, obs_k[..., -3:], _put(jnp.asarray(first.reshape(k, n)), mesh),
                        action, _put(jnp.asarray(reward.reshape(k, n)), mesh), mesh=mesh)
         obs, first = next_obs, info["episode_step"] == 0
-        step += 1
+        step += n
         if step > cfg.warmup_steps:
-          owed += cfg.utd * n
+          owed += cfg.utd * (step - max(before, cfg.warmup_steps))
           pairs = int(owed // 2)
           # Every buffer must hold a valid transition (checked until it does).
           ready = ready or int(jnp.min(jax.vmap(replay.num_valid)(buffers))) > 0
           if pairs and ready:
-            agents, m = _update(agents, buffers, _put(jax.random.split(k_upd, k), mesh),
-                                pairs, cfg.sac, mesh=mesh)
+            chunks = [1] * pairs if on_cpu else [pairs]
+            for i, chunk in enumerate(chunks):
+              keys = _put(jax.random.split(jax.random.fold_in(k_upd, i), k), mesh)
+              agents, metrics = _update(agents, buffers, keys, chunk, cfg.sac, mesh=mesh,
+                                        agent_loop=agent_loop, unroll=on_cpu)
             owed -= 2 * pairs
-            metrics = m
         wall = time.perf_counter() - t0
         for i in np.flatnonzero(truncated):
           a = i // n
           recent.append(float(info["episode_return"][i]))
-          row = dict(step=step, agent=a, seed=cfg.seeds[a],
+          row = dict(step=step, agent=a, seed=specs[a][0], aug=specs[a][1],
                      episode_return=float(info["episode_return"][i]), wall_s=round(wall, 2),
-                     agent_steps_per_s=round((step - start) * k * n / max(wall, 1e-9), 1))
-          row.update({f: float(np.mean(metrics[f][a])) for f in fields[6:] if f in metrics})
+                     agent_steps_per_s=round((step - start) * k / max(wall, 1e-9), 1))
+          row.update({f: float(np.mean(metrics[f][a])) for f in fields[7:] if f in metrics})
           writer.writerow(row)
-        if bar is not None and (step % cfg.log_every == 0 or step == cfg.steps):
-          bar.update(step - bar.n)
-          if recent:
-            bar.set_postfix(ret=f"{np.mean(recent[-10 * k:]):.1f}",
-                            sps=f"{(step - start) * k * n / wall:.0f}")
+        crossed = lambda every: every and step // every != before // every
+        if crossed(cfg.log_every) or step >= cfg.steps:
           log_file.flush()
-        if cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
+          if bar is not None:
+            bar.update(min(step, cfg.steps) - bar.n)
+            if recent:
+              bar.set_postfix(ret=f"{np.mean(recent[-10 * k:]):.1f}",
+                              sps=f"{(step - start) * k / wall:.0f}")
+        if crossed(cfg.checkpoint_every):
           _save(manager, step, agents, key)
       if manager.latest_step() != step:
         _save(manager, step, agents, key)
@@ -323,33 +440,59 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
       log_file.close()
       if bar is not None:
         bar.close()
-  summary = dict(task=cfg.task, seeds=list(cfg.seeds), steps=step,
-                 interrupted=stop["signal"] is not None, wall_s=time.perf_counter() - t0,
+  summary = dict(task=cfg.task, seeds=list(cfg.seeds), augs=list(cfg.sac.aug_names),
+                 steps=step, num_envs=n, interrupted=stop["signal"] is not None,
+                 wall_s=time.perf_counter() - t0,
                  final_return=plot_learning_curve(log_path, os.path.join(
-                     cfg.out_dir, "learning_curve.png"), cfg.seeds))
+                     cfg.out_dir, "learning_curve.png"), specs))
   with open(os.path.join(cfg.out_dir, "summary.json"), "w") as f:
     json.dump(summary, f, indent=1)
   return summary
 
 
-def plot_learning_curve(log_path: str, png_path: str, seeds) -> dict:
-  """Episode return against step per agent (PNG); returns each agent's last return."""
+def agent_label(seed: int, aug: str, augs) -> str:
+  """How logs and plots name an agent: "seed 0", or "seed 0, cj+drq" when several
+  augmentations are trained."""
+  return f"seed {seed}" if len(augs) == 1 else f"seed {seed}, {aug}"
+
+
+def plot_learning_curve(log_path: str, png_path: str, specs) -> dict:
+  """Episode return against training step per agent (PNG).
+
+  Episodes that end at the same step (the agent's N envs) are averaged into one
+  point.
+
+  Args:
+    log_path: the run's log.csv.
+    png_path: where the plot goes.
+    specs: (seed, augmentation) per agent (`TrainConfig.agents`).
+
+  Returns:
+    {agent label: mean return of the agent's episodes that ended last}.
+  """
   import matplotlib
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt
   with open(log_path) as f:
     rows = list(csv.DictReader(f))
+  augs = sorted({aug for _, aug in specs})
   fig, ax = plt.subplots(figsize=(6, 3.5))
   last = {}
-  for a, seed in enumerate(seeds):
-    mine = [r for r in rows if int(r["agent"]) == a]
-    if mine:
-      ax.plot([int(r["step"]) for r in mine], [float(r["episode_return"]) for r in mine],
-              label=f"seed {seed}")
-      last[str(seed)] = float(mine[-1]["episode_return"])
-  ax.set_xlabel("training step")
+  for a, (seed, aug) in enumerate(specs):
+    by_step: dict[int, list[float]] = {}
+    for r in rows:
+      if int(r["agent"]) == a:
+        by_step.setdefault(int(r["step"]), []).append(float(r["episode_return"]))
+    if by_step:
+      steps = sorted(by_step)
+      means = [float(np.mean(by_step[t])) for t in steps]
+      label = agent_label(seed, aug, augs)
+      ax.plot(steps, means, label=label)
+      last[label] = means[-1]
+  ax.set_xlabel("training step (transitions per agent)")
   ax.set_ylabel("episode return")
-  ax.legend()
+  if last:
+    ax.legend()
   fig.tight_layout()
   fig.savefig(png_path, dpi=100)
   plt.close(fig)

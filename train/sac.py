@@ -49,6 +49,9 @@ from train.replay import Batch  # what `replay.sample` returns and `update` cons
 Params = Any
 Metrics = dict[str, jax.Array]
 
+COMPUTE_DTYPES = ("float32", "bfloat16")
+"""What `SACConfig.compute_dtype` accepts."""
+
 
 # --------------------------------------------------------------------------- #
 # Configuration.
@@ -81,12 +84,18 @@ class SACConfig:
     update_delay: one actor/α/target update per this many critic updates (2).
     beta: fraction of each batch that is augmented (Sec. 3.2: .9).
     lam: weight λ of the feature-matching term (Sec. 3.2: 1e-5).
-    aug: augmentation name, any name `dmcr_jax.augment.get` accepts ("drq").
+    aug: augmentation name, any name `dmcr_jax.augment.get` accepts ("drq"); or
+      several separated by commas ("drq,cj+drq"): then each agent uses the one
+      its `AgentState.aug_index` picks (K agents with different augmentations
+      vmap together; see `aug_names`).
     feature_dim: encoder output size (50).
     hidden_dim: width of the actor's and critics' hidden layers (1024).
     conv_channels: filters of each convolution (32).
     log_std_min: lower end of the actor's log-std range (−10).
     log_std_max: upper end of the actor's log-std range (2).
+    compute_dtype: "float32" (default) or "bfloat16", the compute dtype of the
+      networks' convolutions and dense layers (parameters, optimizer states,
+      losses and the policy's log-densities stay float32).
   """
   batch_size: int = 256
   gamma: float = 0.99
@@ -107,6 +116,7 @@ class SACConfig:
   conv_channels: int = 32
   log_std_min: float = LOG_STD_MIN
   log_std_max: float = LOG_STD_MAX
+  compute_dtype: str = "float32"
 
   def __post_init__(self):
     def fail(field, value, want):
@@ -139,10 +149,21 @@ class SACConfig:
                        f"({self.log_std_min!r}, {self.log_std_max!r})")
     if not isinstance(self.aug, str):
       fail("aug", self.aug, "an augmentation name (str)")
-    try:
-      augment.get(self.aug)
-    except ValueError as e:
-      raise ValueError(f"SACConfig.aug: {e}") from None
+    names = self.aug_names
+    if len(set(names)) != len(names):
+      fail("aug", self.aug, "distinct comma-separated augmentation names")
+    for name in names:
+      try:
+        augment.get(name)
+      except ValueError as e:
+        raise ValueError(f"SACConfig.aug: {e}") from None
+    if self.compute_dtype not in COMPUTE_DTYPES:
+      fail("compute_dtype", self.compute_dtype, f"one of {', '.join(COMPUTE_DTYPES)}")
+
+  @property
+  def aug_names(self) -> tuple[str, ...]:
+    """The augmentation names of `aug` ("drq,cj+drq" → ("drq", "cj+drq"))."""
+    return tuple(name.strip() for name in self.aug.split(","))
 
   def entropy_target(self, action_size: int) -> float:
     """H̄ for the temperature loss: `target_entropy`, or −action_size if None.
@@ -180,11 +201,14 @@ def make_networks(action_size: int, config: SACConfig) -> Networks:
   Returns:
     A `Networks`.
   """
+  dtype = config.compute_dtype
   return Networks(
-      encoder=Encoder(channels=config.conv_channels, feature_dim=config.feature_dim),
+      encoder=Encoder(channels=config.conv_channels, feature_dim=config.feature_dim,
+                      dtype=dtype),
       actor=Actor(action_size=action_size, hidden_dim=config.hidden_dim,
-                  log_std_min=config.log_std_min, log_std_max=config.log_std_max),
-      critic=Critic(hidden_dim=config.hidden_dim))
+                  log_std_min=config.log_std_min, log_std_max=config.log_std_max,
+                  dtype=dtype),
+      critic=Critic(hidden_dim=config.hidden_dim, dtype=dtype))
 
 
 @flax.struct.dataclass
@@ -199,6 +223,7 @@ class AgentState:
     actor_opt_state: Adam state of the actor.
     alpha_opt_state: Adam state of log α.
     step: int32, the number of critic updates done.
+    aug_index: int32, which of `SACConfig.aug_names` this agent trains with.
     networks: the modules (static, not a pytree node).
   """
   params: dict[str, Params]
@@ -208,6 +233,7 @@ class AgentState:
   actor_opt_state: optax.OptState
   alpha_opt_state: optax.OptState
   step: jax.Array
+  aug_index: jax.Array
   networks: Networks = flax.struct.field(pytree_node=False)
 
 
@@ -257,7 +283,7 @@ def _encoder_out_side(side: int, num_layers: int) -> int:
 
 
 def init_agent(key: jax.Array, obs_shape: tuple[int, int, int], action_size: int,
-               config: SACConfig) -> AgentState:
+               config: SACConfig, aug_index: int | jax.Array = 0) -> AgentState:
   """A fresh agent: random networks, targets equal to them, α = `init_alpha`.
 
   Args:
@@ -265,6 +291,8 @@ def init_agent(key: jax.Array, obs_shape: tuple[int, int, int], action_size: int
     obs_shape: (H, W, 3·stack) of one observation.
     action_size: |A|.
     config: the hyperparameters.
+    aug_index: which of `config.aug_names` the agent trains with (may be traced,
+      e.g. under vmap).
 
   Returns:
     An `AgentState` with ``step == 0``.
@@ -299,6 +327,7 @@ def init_agent(key: jax.Array, obs_shape: tuple[int, int, int], action_size: int
       actor_opt_state=actor_optimizer(config).init(actor),
       alpha_opt_state=alpha_optimizer(config).init(log_alpha),
       step=jnp.zeros((), jnp.int32),
+      aug_index=jnp.asarray(aug_index, jnp.int32),
       networks=networks)
 
 
@@ -339,6 +368,27 @@ def num_augmented(batch_size: int, beta: float) -> int:
     A Python int in [0, B] (a tiny tolerance keeps e.g. ⌊.29·100⌋ = 29).
   """
   return min(batch_size, max(0, math.floor(beta * batch_size + 1e-9)))
+
+
+def agent_augmentation(agent: AgentState, config: SACConfig):
+  """The augmentation `agent` trains with: ``aug(key, tree) -> tree``.
+
+  With one name in `config.aug` that augmentation; with several, a
+  `jax.lax.switch` on `agent.aug_index` (under vmap over agents with different
+  indices every listed augmentation is computed and the agent's selected).
+
+  Args:
+    agent: the agent (its `aug_index`).
+    config: the hyperparameters (`aug`).
+
+  Returns:
+    A function like `dmcr_jax.augment.get`'s.
+  """
+  fns = [augment.get(name) for name in config.aug_names]
+  if len(fns) == 1:
+    return fns[0]
+  index = jnp.clip(agent.aug_index, 0, len(fns) - 1)
+  return lambda key, tree: jax.lax.switch(index, fns, key, tree)
 
 
 def augment_and_mix(key: jax.Array, batch: Batch, aug, beta: float
@@ -560,7 +610,8 @@ def update(agent: AgentState, batch: Batch, key: jax.Array, config: SACConfig, *
   """
   _check_batch(agent, batch, config)
   aug_key, target_key, actor_key = jax.random.split(key, 3)
-  mixed, z_obs = augment_and_mix(aug_key, batch, augment.get(config.aug), config.beta)
+  mixed, z_obs = augment_and_mix(aug_key, batch, agent_augmentation(agent, config),
+                                 config.beta)
 
   critic_params = {"encoder": agent.params["encoder"],
                    "critic": agent.params["critic"]}

@@ -1,0 +1,223 @@
+"""Benchmark of the SAC+AUG learner: gradient updates per second.
+
+Times exactly what `train.loop` runs: `loop._update`, a jitted call that scans
+``--pairs`` `sac.update_pair`s (two updates each, actor and targets on the
+second) for K agents, each sampling its own batches from its own full device
+replay buffer (random 84×84 frames, 3-frame stacks rebuilt at sampling, as in
+training), with the paper's defaults (batch 256, DrQ augmentation, β = .9,
+λ = 1e-5). Each row varies the number of agents K, the compute dtype (float32,
+bfloat16) and how the agents are batched (``vmap``: one batched computation,
+``map``: one after the other inside the call). The baseline measured in the same
+run is a plain Python loop over one jitted `sac.update` per gradient step (one
+agent, float32, batch sampled in the same call), i.e. one host dispatch per update
+as a PyTorch-style loop does.
+
+Compile time and run time are reported apart; the run time is the median of
+several calls (each ended by ``block_until_ready``) over at least ``--seconds``.
+Rows go to ``--out`` (JSON lines, appended) and a Markdown table beside it.
+
+Usage::
+
+    python -m benchmarks.learner [--agents 1,8] [--dtypes float32,bfloat16] \\
+        [--loops vmap,map] [--batch 256] [--pairs 25] [--out PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import functools
+import json
+import os
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from benchmarks.augment import device_slug
+from train import loop, replay, sac
+
+
+def filled_buffers(k: int, capacity: int, size: int, stack: int, action_size: int,
+                   seed: int = 0) -> replay.ReplayBuffer:
+  """K full replay buffers of one env each, random frames, an episode every 125 rows."""
+  one = replay.init(capacity, 1, (size, size, 3), action_size, stack)
+  t = one.ring_size
+  key = jax.random.key(seed)
+  frames = jax.random.randint(key, (k, 1, t, size, size, 3), 0, 256, jnp.int32)
+  return one.replace(
+      frames=frames.astype(jnp.uint8),
+      action=jax.random.uniform(key, (k, 1, t, action_size), minval=-1, maxval=1),
+      reward=jax.random.uniform(key, (k, 1, t)),
+      first=jnp.broadcast_to(jnp.arange(t) % 125 == 0, (k, 1, t)),
+      pos=jnp.zeros((k,), jnp.int32),
+      count=jnp.full((k,), t, jnp.int32))
+
+
+def _agents(k: int, obs_shape, action_size: int, config: sac.SACConfig):
+  return jax.vmap(lambda s: sac.init_agent(jax.random.key(s), obs_shape, action_size,
+                                           config))(jnp.arange(k))
+
+
+def _timed(call, state, seconds: float, min_reps: int = 3):
+  """Runs ``state = call(state)`` until `seconds` have passed; per-call times."""
+  times = []
+  start = time.perf_counter()
+  while len(times) < min_reps or time.perf_counter() - start < seconds:
+    t0 = time.perf_counter()
+    state = call(state)
+    jax.block_until_ready(state)
+    times.append(time.perf_counter() - t0)
+  return np.asarray(times), state
+
+
+def bench_scanned(k: int, dtype: str, agent_loop: str, batch: int, pairs: int, size: int,
+                  stack: int, action_size: int, capacity: int, seconds: float) -> dict:
+  """Updates/s of `loop._update` for K agents; one result row."""
+  config = sac.SACConfig(batch_size=batch, compute_dtype=dtype)
+  obs_shape = (size, size, 3 * stack)
+  agents = _agents(k, obs_shape, action_size, config)
+  buffers = filled_buffers(k, capacity, size, stack, action_size)
+  keys = jax.random.split(jax.random.key(1), k)
+  update = functools.partial(loop._update, pairs=pairs, config=config,
+                             agent_loop=agent_loop)
+  t0 = time.perf_counter()
+  agents, _ = update(agents, buffers, keys)  # compiles
+  jax.block_until_ready(agents)
+  compile_s = time.perf_counter() - t0
+
+  def call(agents):
+    return update(agents, buffers, keys)[0]
+
+  _, agents = _timed(call, agents, 0.0, 2)  # warm-up
+  times, _ = _timed(call, agents, seconds)
+  per_call = float(np.median(times))
+  updates = 2 * pairs
+  return dict(kind="scanned", agents=k, dtype=dtype, agent_loop=agent_loop, batch=batch,
+              pairs_per_call=pairs, compile_s=round(compile_s, 2), reps=int(times.size),
+              ms_per_call=round(per_call * 1e3, 3),
+              updates_per_s_per_agent=round(updates / per_call, 1),
+              agent_updates_per_s=round(k * updates / per_call, 1))
+
+
+def bench_python_loop(batch: int, size: int, stack: int, action_size: int, capacity: int,
+                      seconds: float) -> dict:
+  """The baseline: one jitted `sac.update` (with its sampling) per host call."""
+  config = sac.SACConfig(batch_size=batch)
+  agent = _agents(1, (size, size, 3 * stack), action_size, config)
+  agent = jax.tree.map(lambda x: x[0], agent)
+  buffer = jax.tree.map(lambda x: x[0], filled_buffers(1, capacity, size, stack, action_size))
+
+  @functools.partial(jax.jit, static_argnames=("update_actor",), donate_argnums=(0,))
+  def one_update(agent, key, update_actor):
+    k_sample, k_update = jax.random.split(key)
+    batch_ = replay.sample(buffer, k_sample, batch)
+    return sac.update(agent, batch_, k_update, config, update_actor=update_actor)[0]
+
+  key = jax.random.key(2)
+  t0 = time.perf_counter()
+  agent = one_update(agent, key, update_actor=False)
+  agent = one_update(agent, key, update_actor=True)
+  jax.block_until_ready(agent)
+  compile_s = time.perf_counter() - t0
+  n = 20
+
+  def call(agent):
+    for i in range(n):  # a host dispatch per update, as a Python training loop
+      agent = one_update(agent, jax.random.fold_in(key, i), update_actor=i % 2 == 1)
+    return agent
+
+  _, agent = _timed(call, agent, 0.0, 1)
+  times, _ = _timed(call, agent, seconds)
+  per_update = float(np.median(times)) / n
+  return dict(kind="python_loop", agents=1, dtype="float32", agent_loop="-", batch=batch,
+              pairs_per_call=0, compile_s=round(compile_s, 2), reps=int(times.size),
+              ms_per_call=round(per_update * 1e3, 3),
+              updates_per_s_per_agent=round(1 / per_update, 1),
+              agent_updates_per_s=round(1 / per_update, 1))
+
+
+def markdown(rows: list[dict]) -> str:
+  """All rows as one Markdown table, newest last."""
+  lines = ["| device | kind | agents | dtype | agent loop | batch | updates per call | "
+           "compile s | ms per call | updates/s per agent | agent-updates/s | × baseline "
+           "| UTC |", "|---|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---|"]
+  for r in rows:
+    ratio = r.get("x_baseline")
+    lines.append(
+        f"| {r['device_kind']} | {r['kind']} | {r['agents']} | {r['dtype']} | "
+        f"{r['agent_loop']} | {r['batch']} | {2 * r['pairs_per_call'] or 1} | "
+        f"{r['compile_s']:.1f} | {r['ms_per_call']:.1f} | "
+        f"{r['updates_per_s_per_agent']:,.0f} | {r['agent_updates_per_s']:,.0f} | "
+        f"{'' if ratio is None else f'{ratio:.1f}'} | {r['time_utc'][11:16]} |")
+  return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> None:
+  """Command-line entry: the rows, appended to --out, and the Markdown table."""
+  p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+  p.add_argument("--agents", default="1,8", help="comma-separated K values")
+  p.add_argument("--dtypes", default="float32,bfloat16")
+  p.add_argument("--loops", default="vmap,map", help="agent batching for K > 1")
+  p.add_argument("--batch", type=int, default=256)
+  p.add_argument("--pairs", type=int, default=25, help="update pairs per jitted call")
+  p.add_argument("--size", type=int, default=84)
+  p.add_argument("--stack", type=int, default=3)
+  p.add_argument("--action-size", type=int, default=6)
+  p.add_argument("--capacity", type=int, default=10_000, help="buffer rows per agent")
+  p.add_argument("--seconds", type=float, default=3.0)
+  p.add_argument("--no-baseline", action="store_true")
+  p.add_argument("--out", default=None,
+                 help="JSONL (default benchmarks/results/learner_<device>.jsonl)")
+  a = p.parse_args(argv)
+  for dtype in a.dtypes.split(","):
+    sac.SACConfig(compute_dtype=dtype)  # fails early on a bad name
+  for name in a.loops.split(","):
+    if name not in loop.AGENT_LOOPS:
+      p.error(f"--loops: {name!r} is not one of {', '.join(loop.AGENT_LOOPS)}")
+  device = jax.devices()[0]
+  out = a.out or os.path.join("benchmarks", "results",
+                              f"learner_{device_slug(device)}.jsonl")
+  os.makedirs(os.path.dirname(out) or ".", exist_ok=True)
+  common = dict(device_kind=device.device_kind, platform=device.platform,
+                jax=jax.__version__, size=a.size, stack=a.stack,
+                action_size=a.action_size, capacity=a.capacity,
+                time_utc=datetime.datetime.now(datetime.timezone.utc).isoformat(
+                    timespec="seconds"))
+  shape = dict(batch=a.batch, size=a.size, stack=a.stack, action_size=a.action_size,
+               capacity=a.capacity, seconds=a.seconds)
+  baseline = None
+  todo = []
+  if not a.no_baseline:
+    todo.append(lambda: bench_python_loop(**shape))
+  for k in map(int, a.agents.split(",")):
+    for dtype in a.dtypes.split(","):
+      for agent_loop in (a.loops.split(",") if k > 1 else ["vmap"]):
+        todo.append(functools.partial(bench_scanned, k, dtype, agent_loop,
+                                      pairs=a.pairs, **shape))
+  for job in todo:
+    row = dict(job(), **common)
+    if row["kind"] == "python_loop":
+      baseline = row["updates_per_s_per_agent"]
+    if baseline:
+      row["x_baseline"] = round(row["agent_updates_per_s"] / baseline, 2)
+    print(json.dumps(row), flush=True)
+    with open(out, "a") as f:
+      f.write(json.dumps(row) + "\n")
+  with open(out) as f:
+    rows = [json.loads(line) for line in f if line.strip()]
+  md = os.path.splitext(out)[0] + ".md"
+  with open(md, "w") as f:
+    f.write(f"Rows of `python -m benchmarks.learner` (see its docstring), appended to "
+            f"`{os.path.basename(out)}`; the last run: `python -m benchmarks.learner "
+            f"{' '.join(sys.argv[1:] if argv is None else argv)}` ({os.cpu_count()} "
+            f"cores). Updates/s count gradient updates (critic every update; actor, α and "
+            f"targets every second one).\n\n" + markdown(rows))
+  print(markdown(rows))
+
+
+if __name__ == "__main__":
+  main()
