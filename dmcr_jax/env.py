@@ -35,6 +35,7 @@ episode) and "episode_return".
 
 from __future__ import annotations
 
+import functools
 import time
 from typing import Any, Sequence
 
@@ -86,6 +87,23 @@ def _seed_source(visual_seeds, num_envs: int) -> SeedRange | np.ndarray:
   return seeds
 
 
+@functools.lru_cache(maxsize=64)
+def _physics_fns(task, num_envs: int, frame_skip: int, seed_range: SeedRange | None):
+  """Jitted (init, step) for N envs of `task`, shared by every env built alike.
+
+  `models.load` returns one `Task` object per name and solver budget, so envs
+  with the same task, size, frame skip and seed kind reuse one compilation (an
+  evaluation's or a test's second env compiles nothing). Fixed visual seeds are
+  the functions' last argument; a `SeedRange` (seed_range) is static.
+  """
+  pick = (lambda arg: arg) if seed_range is None else (lambda arg: seed_range)
+  donate = () if jax.default_backend() == "cpu" else (0,)
+  init = jax.jit(lambda key, arg: physics_env.init(task, pick(arg), key, num_envs))
+  step = jax.jit(lambda es, a, arg: physics_env.step(task, pick(arg), frame_skip, es, a),
+                 donate_argnums=donate)
+  return init, step
+
+
 class PixelVectorEnv(gymnasium.vector.VectorEnv):
   """N DMCR envs with pixel observations (a gymnasium `VectorEnv`).
 
@@ -127,12 +145,7 @@ class PixelVectorEnv(gymnasium.vector.VectorEnv):
     self._pool = RenderPool(task, max_batch=n, height=self.height, width=self.width,
                             camera=camera, workers=min(n, workers or default_workers()),
                             quality=quality, gl=gl, frame_stack=self.frame_stack)
-    seeds = self.seeds if isinstance(self.seeds, SeedRange) else jnp.asarray(self.seeds)
-    self._init = physics_env.make_init(self.task, seeds, n)
-    donate = () if jax.default_backend() == "cpu" else (0,)
-    self._step = jax.jit(
-        lambda es, a: physics_env.step(self.task, seeds, self.frame_skip, es, a),
-        donate_argnums=donate)
+    self._use_seeds()
     self._key = jax.random.key(int(seed))
     self._es = None
     self._looks = None
@@ -141,6 +154,55 @@ class PixelVectorEnv(gymnasium.vector.VectorEnv):
     self._needs_reset = np.zeros(n, bool)
     self.timings = dict.fromkeys(TIMING_PARTS, 0.0)
     self.timed_steps = 0
+
+  def set_visuals(self, visual_seeds: Any, vary: str | Sequence[str] | None = None) -> None:
+    """Changes the looks: new visual seeds (and optionally `vary`) for every env.
+
+    The physics is not recompiled when fixed seeds replace fixed seeds (they are
+    an argument of the jitted step), so an evaluation can sweep many visual
+    conditions with one env. The running episodes end: call `reset` next.
+
+    Args:
+      visual_seeds: as for `make` (one int, one per env, or a `SeedRange`).
+      vary: the factors the seeds change (as for `make`); None keeps the current.
+
+    Raises:
+      ValueError: bad seeds or factors (the env is left unchanged).
+    """
+    vary = self.vary if vary is None else vary
+    active_factors(self.domain, vary)
+    seeds = _seed_source(visual_seeds, self.num_envs)
+    self.seeds, self.vary = seeds, vary
+    self._use_seeds()
+    self._es = self._obs = self._looks = self._look_seeds = None
+
+  def set_state(self, state: physics_env.EnvState):
+    """Replaces every env's state (e.g. to render one physical state under many
+    looks) and restarts the frame stacks from it.
+
+    Args:
+      state: an `EnvState` shaped like `env.state` (each env's look follows its
+        `visual_seed`).
+
+    Returns:
+      (observations, info) as after `reset`.
+
+    Raises:
+      ValueError: the state's structure or shapes differ from the env's.
+      RuntimeError: before `reset`.
+    """
+    if self._es is None:
+      raise RuntimeError("call reset() before set_state()")
+    want = jax.tree.structure(self._es)
+    if jax.tree.structure(state) != want or any(
+        np.shape(a) != np.shape(b) for a, b in zip(jax.tree.leaves(state),
+                                                   jax.tree.leaves(self._es))):
+      raise ValueError("state must be an EnvState shaped like env.state")
+    self._es = jax.tree.map(jnp.asarray, state)
+    host = self._fetch(self._es, None, None)
+    self._obs = self._output(self._render(host, restart=None))
+    self._needs_reset = np.asarray(jax.device_get(self._es.needs_reset), bool).copy()
+    return self._obs, self._info(host)
 
   # gymnasium API -------------------------------------------------------------
 
@@ -162,7 +224,7 @@ class PixelVectorEnv(gymnasium.vector.VectorEnv):
         raise ValueError(f"seed must be an int or None, got {seed!r}")
       self._key = jax.random.key(int(seed))
     self._key, key = jax.random.split(self._key)
-    self._es = self._init(key)
+    self._es = self._init(key, self._seed_arg)
     host = self._fetch(self._es, None, None)
     self._obs = self._output(self._render(host, restart=None))
     self._needs_reset = np.zeros(self.num_envs, bool)
@@ -185,7 +247,7 @@ class PixelVectorEnv(gymnasium.vector.VectorEnv):
       raise RuntimeError("call reset() before step()")
     actions = self._check_actions(actions)
     t0 = time.perf_counter()
-    es, reward, truncated = self._step(self._es, actions)
+    es, reward, truncated = self._step(self._es, actions, self._seed_arg)
     self._es = jax.block_until_ready(es)
     t1 = time.perf_counter()
     host = self._fetch(self._es, reward, truncated)
@@ -238,6 +300,14 @@ class PixelVectorEnv(gymnasium.vector.VectorEnv):
             f"frame_stack={self.frame_stack}, image={self.height}x{self.width})")
 
   # Internals ------------------------------------------------------------------
+
+  def _use_seeds(self) -> None:
+    """Points `_init`/`_step` at the current seed source. Fixed seeds are a traced
+    argument (one compilation serves any of them); a `SeedRange` is static."""
+    fixed = not isinstance(self.seeds, SeedRange)
+    self._init, self._step = _physics_fns(self.task, self.num_envs, self.frame_skip,
+                                          None if fixed else self.seeds)
+    self._seed_arg = jnp.asarray(self.seeds, jnp.int32) if fixed else None
 
   def _check_actions(self, actions) -> np.ndarray:
     a = np.asarray(actions, dtype=np.float32)

@@ -112,6 +112,29 @@ def test_same_seed_same_pixels(env):
   assert not np.array_equal(env.reset()[0], a[0])
 
 
+def test_set_visuals_and_set_state_act_like_a_fresh_env(env):
+  # New looks on the running env give the pixels a fresh env with those seeds gives.
+  rng = np.random.default_rng(4)
+  actions = [_actions(rng, env) for _ in range(3)]
+  env.set_visuals([11, 12, 2**30 + 3], vary="floor,light")
+  with pytest.raises(RuntimeError, match="reset"):
+    env.step(actions[0])
+  got = [env.reset(seed=8)[0]] + [env.step(a)[0] for a in actions]
+  with dmcr_jax.make(TASK, num_envs=3, visual_seeds=[11, 12, 2**30 + 3], vary="floor,light",
+                     frame_skip=SKIP, image_size=32, workers=2, seed=3) as fresh:
+    want = [fresh.reset(seed=8)[0]] + [fresh.step(a)[0] for a in actions]
+  np.testing.assert_array_equal(np.stack(got), np.stack(want))
+  # set_state: env 0's state in every env → the same pixels where the looks agree.
+  env.set_visuals(5, vary="all")
+  env.reset(seed=1)
+  first = jax.tree.map(lambda x: jnp.broadcast_to(x[:1], x.shape), env.state)
+  obs, info = env.set_state(first)
+  assert (obs == obs[:1]).all() and (info["episode_step"] == info["episode_step"][0]).all()
+  with pytest.raises(ValueError, match="shaped like"):
+    env.set_state(jax.tree.map(lambda x: x[:2], env.state))
+  env.set_visuals(SEEDS, vary="all")  # as the fixture built it
+
+
 def test_bad_input_is_rejected_and_the_env_keeps_working(env):
   obs, _ = env.reset(seed=8)
   good = np.zeros((3, 1), np.float32)

@@ -262,6 +262,11 @@ def _restore(manager, agents, key):
   return state["agents"], jax.random.wrap_key_data(state["key"]), int(state["step"])
 
 
+def to_env_action(action: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+  """Policy actions in [−1, 1] → the env's bounds [low, high] (float32)."""
+  return (low + (np.asarray(action) + 1.0) * 0.5 * (high - low)).astype(np.float32)
+
+
 def save_config(cfg: TrainConfig, out_dir: str) -> None:
   """Writes `cfg` as `<out_dir>/config.json` (read back by `load_config`)."""
   with open(os.path.join(out_dir, "config.json"), "w") as f:
@@ -394,9 +399,8 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
         action = _act(agents, obs_k, _put(jax.random.split(k_act, k), mesh),
                       random=step < cfg.warmup_steps, mesh=mesh)
         before = step
-        action_host = np.asarray(action).reshape(k * n, action_size)
-        env_action = low + (action_host + 1.0) * 0.5 * (high - low)
-        next_obs, reward, _, truncated, info = env.step(env_action.astype(np.float32))
+        env_action = to_env_action(np.asarray(action).reshape(k * n, action_size), low, high)
+        next_obs, reward, _, truncated, info = env.step(env_action)
         buffers = _add(buffers, obs_k[..., -3:], _put(jnp.asarray(first.reshape(k, n)), mesh),
                        action, _put(jnp.asarray(reward.reshape(k, n)), mesh), mesh=mesh)
         obs, first = next_obs, info["episode_step"] == 0

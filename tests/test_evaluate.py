@@ -1,0 +1,137 @@
+"""The zero-shot evaluation (train/evaluate.py) on a tiny, untrained checkpoint."""
+
+import json
+import os
+
+import jax
+import numpy as np
+import pytest
+
+import dmcr_jax
+from train import evaluate as ev
+from train import loop, sac
+
+pytestmark = pytest.mark.xdist_group("evaluate")
+
+# Cartpole at action repeat 100: 10 agent steps per episode.
+CFG = loop.TrainConfig(task="cartpole-balance", action_repeat=100, image_size=16, seeds=(0, 1),
+                       quality="fastest", workers=1,
+                       sac=sac.SACConfig(batch_size=8, conv_channels=4, feature_dim=8,
+                                         hidden_dim=16))
+TINY = ev.EvalConfig(visual_seeds=2, dynamics_seeds=2, train_episodes=3, quality="fastest",
+                     workers=1)
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+  """A `train`-style folder holding two freshly initialised agents (no training)."""
+  out = str(tmp_path_factory.mktemp("run"))
+  cfg = loop.TrainConfig(**{**CFG.__dict__, "out_dir": out})
+  loop.save_config(cfg, out)
+  task = dmcr_jax.load(cfg.task)
+  agents = loop.init_agents(cfg, (16, 16, 9), task.action_size)
+  loop._save(loop._checkpointer(out), 3, agents, jax.random.key(0))
+  return out
+
+
+def test_conditions_follow_the_papers_factor_table():
+  assert ev.conditions_for("cartpole-balance") == (
+      "none", "light", "camera", "body", "floor", "background", "all")
+  assert ev.conditions_for("fish-swim") == ("none", "light", "camera", "body", "floor",
+                                            "target", "all")
+  assert "reflectance" in ev.conditions_for("cheetah-run")
+
+
+def test_generalization_error():
+  assert ev.generalization_error(900.0, 450.0) == pytest.approx(0.5)
+  assert ev.generalization_error(500.0, 600.0) == pytest.approx(-0.2)
+  assert np.isnan(ev.generalization_error(0.0, 10.0))
+
+
+def test_held_out_seeds_never_touch_a_training_range():
+  seeds = ev.held_out_seeds(100, seed=0)
+  assert len(np.unique(seeds)) == 100
+  assert (seeds >= dmcr_jax.TEST_SEEDS.start).all() and (seeds < dmcr_jax.TEST_SEEDS.stop).all()
+  assert not ((seeds >= dmcr_jax.TRAIN_SEEDS.start) & (seeds < dmcr_jax.TRAIN_SEEDS.stop)).any()
+  np.testing.assert_array_equal(seeds, ev.held_out_seeds(100, seed=0))
+  assert not np.array_equal(seeds, ev.held_out_seeds(100, seed=1))
+  ev._check_disjoint(seeds, dmcr_jax.levels(1000))
+  with pytest.raises(RuntimeError, match="training looks"):
+    ev._check_disjoint(np.array([5, 2**30 + 1]), dmcr_jax.levels(10))
+
+
+def test_bad_protocols_are_rejected():
+  with pytest.raises(ValueError, match="valid: none, light"):
+    ev.check_eval_config(ev.EvalConfig(conditions=("fog",)), "cartpole-balance")
+  with pytest.raises(ValueError, match="at most"):
+    ev.check_eval_config(ev.EvalConfig(visual_seeds=2, dynamics_seeds=3), "cartpole-balance")
+  with pytest.raises(ValueError, match="positive int"):
+    ev.check_eval_config(ev.EvalConfig(visual_seeds=0), "cartpole-balance")
+  with pytest.raises(SystemExit):
+    ev.main(["/nonexistent/run"])
+
+
+def test_protocol_table_arithmetic_and_determinism(run_dir, tmp_path):
+  first = ev.evaluate(run_dir, TINY, out_dir=str(tmp_path / "a"), progress=False)
+  conditions = list(ev.conditions_for("cartpole-balance"))
+  assert first["conditions"] == conditions and first["checkpoint_step"] == 3
+  assert len(first["agents"]) == 2
+  for row in first["agents"]:
+    assert len(row["train"]["episodes"]) == TINY.train_episodes
+    for c in conditions:
+      cell = row["conditions"][c]
+      assert len(cell["episodes"]) == TINY.visual_seeds * TINY.dynamics_seeds
+      assert cell["mean"] == pytest.approx(np.mean(cell["episodes"]))
+      assert cell["e_g"] == pytest.approx(
+          (row["train"]["mean"] - cell["mean"]) / row["train"]["mean"])
+  mean = first["mean"]
+  assert mean["train"] == pytest.approx(np.mean([r["train"]["mean"] for r in first["agents"]]))
+  assert set(first["test_visual_seeds"]).isdisjoint(range(0, 2**30))
+
+  with open(tmp_path / "a" / "eval.md") as f:
+    table = f.read()
+  header = next(line for line in table.splitlines() if line.startswith("| agent"))
+  assert header == "| agent | train | " + " | ".join(conditions) + " | E_G (all) |"
+  assert table.count("| seed ") == 2 and "**mean**" in table
+  assert os.path.getsize(tmp_path / "a" / "eval.png") > 0
+
+  # The same checkpoint and seeds give the same episodes, return for return.
+  some = ("floor", "all")
+  again = ev.evaluate(run_dir, ev.EvalConfig(**{**TINY.__dict__, "conditions": some}),
+                      out_dir=str(tmp_path / "b"), agents=[1], progress=False)
+  assert again["agents"][0]["train"]["episodes"] == first["agents"][1]["train"]["episodes"]
+  for c in some:
+    assert (again["agents"][0]["conditions"][c]["episodes"]
+            == first["agents"][1]["conditions"][c]["episodes"])
+  with open(tmp_path / "b" / "eval.json") as f:
+    assert json.load(f)["agents"][0]["agent"] == 1
+
+
+def test_invariance_is_zero_without_visual_change_and_positive_with_floors(run_dir, tmp_path):
+  from train import analysis
+  result = analysis.encoder_invariance(run_dir, str(tmp_path), looks=3, steps=2,
+                                       vary=("none", "floor"), quality="fastest", workers=1)
+  assert result["physical_state_equal"] == {"none": True, "floor": True}
+  assert result["looks_differing"] == {"none": 0, "floor": 2}
+  # Same state, same look: identical pixels, features equal up to float rounding
+  # (batch rows may take different vector paths); other floors move them.
+  assert max(result["std"]["none"]) < 1e-6
+  assert max(result["std"]["floor"]) > 1e-3
+  assert result["std"]["floor"] == sorted(result["std"]["floor"])
+  assert os.path.getsize(tmp_path / "invariance.png") > 0
+
+
+def test_conv_activations_match_a_numpy_convolution():
+  from train import analysis
+  agent = sac.init_agent(jax.random.key(0), (16, 16, 9), 1, CFG.sac)
+  obs = np.random.default_rng(0).integers(0, 256, (2, 16, 16, 9), dtype=np.uint8)
+  maps = analysis.conv_activations(agent.networks.encoder, agent.params["encoder"], obs)
+  assert [m.shape for m in maps] == [(2, 7, 7), (2, 5, 5), (2, 3, 3), (2, 1, 1)]
+  p = agent.params["encoder"]["params"]["conv0"]
+  x = obs.astype(np.float64) / 255.0
+  out = np.zeros((2, 7, 7, p["kernel"].shape[-1]))
+  for i in range(7):
+    for j in range(7):
+      patch = x[:, 2 * i:2 * i + 3, 2 * j:2 * j + 3, :]
+      out[:, i, j] = np.einsum("bhwc,hwco->bo", patch, np.asarray(p["kernel"])) + p["bias"]
+  np.testing.assert_allclose(maps[0], np.maximum(out, 0).mean(-1), rtol=1e-4, atol=1e-5)

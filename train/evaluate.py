@@ -1,0 +1,379 @@
+"""Zero-shot generalisation of trained agents: the DMCR paper's protocol (Sec. 4.2–4.3).
+
+For a `train` run, each agent (deterministic policy: tanh of the mean action) is
+evaluated
+- at its training look over `train_episodes` initial states (paper: 100), the
+  "train" return;
+- under each visual condition over `visual_seeds` held-out looks × `dynamics_seeds`
+  initial states each (paper: 100 × 3 = 300 episodes): "none" (nothing varied),
+  one factor at a time (light, camera, body, floor, then background, target and
+  reflectance where they apply to the domain) and "all".
+Conditions change factors away from dm_control's default look, as in the paper,
+whose agents trained on it (visual seed 0). Test looks are drawn from the
+held-out `dmcr_jax.TEST_SEEDS`, which no training range can overlap, with a NumPy
+generator seeded by `EvalConfig.seed`. Every condition uses the same initial
+states (one env of V·D envs, reset with the same key), so conditions differ only
+in their looks, and all its episodes run as one batch; the looks are swapped with
+`PixelVectorEnv.set_visuals` without recompiling the physics.
+
+The generalisation error of a condition is E_G = (train − test) / train (paper
+Sec. 3). Outputs: a JSON file, a Markdown table laid out like the paper's Table 4
+(with the paper's row for the task and method when it has one) and a bar chart.
+
+    evaluate runs/cartpole-balance-drq            # or: python -m train.evaluate …
+    evaluate runs/cartpole-balance-drq --invariance --attention --video
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+
+import jax
+import numpy as np
+
+from train import loop, paper_results, sac
+
+FACTOR_CONDITIONS: tuple[str, ...] = ("light", "camera", "body", "floor", "background",
+                                      "target", "reflectance")
+"""Single-factor conditions in table order (those that apply to a domain are used)."""
+
+
+def conditions_for(task: str) -> tuple[str, ...]:
+  """The conditions evaluated for `task`: none, each applicable factor, all."""
+  from dmcr_jax.visuals.factors import active_factors
+  domain = task.split("-", 1)[0]
+  factors = active_factors(domain, "all")
+  return ("none",) + tuple(f for f in FACTOR_CONDITIONS if f in factors) + ("all",)
+
+
+def held_out_seeds(n: int, seed: int = 0) -> np.ndarray:
+  """`n` distinct visual seeds drawn from `dmcr_jax.TEST_SEEDS` (int64, sorted).
+
+  Args:
+    n: how many.
+    seed: seed of the NumPy generator that draws them.
+
+  Returns:
+    (n,) seeds, all in [TEST_SEEDS.start, TEST_SEEDS.stop).
+  """
+  from dmcr_jax import TEST_SEEDS
+  rng = np.random.default_rng(seed)
+  size = TEST_SEEDS.stop - TEST_SEEDS.start
+  seeds = TEST_SEEDS.start + np.sort(rng.choice(size, size=n, replace=False))
+  return seeds.astype(np.int64)
+
+
+def generalization_error(train: float, test: float) -> float:
+  """E_G = (train − test) / train (paper Sec. 3); NaN when train is 0."""
+  return float("nan") if train == 0 else (train - test) / train
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+  """What `evaluate` runs (defaults: the paper's protocol).
+
+  Attributes:
+    visual_seeds: held-out looks per condition (paper: 100).
+    dynamics_seeds: initial states per look (paper: 3).
+    train_episodes: episodes at the training look (paper: 100); at most
+      visual_seeds · dynamics_seeds (the first ones of the batch are used).
+    seed: seeds the held-out looks' draw and the initial states.
+    conditions: the conditions to run; None = every one that applies.
+    quality: render preset (the default, "exact", is dm_control's look).
+    workers: render workers (None: one per core).
+  """
+  visual_seeds: int = 100
+  dynamics_seeds: int = 3
+  train_episodes: int = 100
+  seed: int = 0
+  conditions: tuple[str, ...] | None = None
+  quality: str = "exact"
+  workers: int | None = None
+
+
+def check_eval_config(cfg: EvalConfig, task: str) -> tuple[str, ...]:
+  """Validates `cfg` for `task`; returns the conditions to run."""
+  from dmcr_jax.visuals.tiled import check_quality
+  for name in ("visual_seeds", "dynamics_seeds", "train_episodes"):
+    v = getattr(cfg, name)
+    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+      raise ValueError(f"{name} must be a positive int, got {v!r}")
+  if cfg.train_episodes > cfg.visual_seeds * cfg.dynamics_seeds:
+    raise ValueError(f"train_episodes ({cfg.train_episodes}) must be at most "
+                     f"visual_seeds · dynamics_seeds = {cfg.visual_seeds * cfg.dynamics_seeds}")
+  check_quality(cfg.quality)
+  valid = conditions_for(task)
+  conditions = valid if cfg.conditions is None else tuple(cfg.conditions)
+  bad = [c for c in conditions if c not in valid]
+  if bad or not conditions:
+    raise ValueError(f"conditions {bad or conditions!r} are not valid for {task}; valid: "
+                     f"{', '.join(valid)}")
+  return conditions
+
+
+@jax.jit
+def greedy_action(agent: sac.AgentState, obs: jax.Array) -> jax.Array:
+  """The evaluation policy: tanh of the mean action, (N, A) in [−1, 1]."""
+  return sac.act(agent, obs, None, deterministic=True)
+
+
+def run_episodes(env, policy, seed: int) -> np.ndarray:
+  """One episode in every env of `env`, all starting together; their returns (N,).
+
+  Args:
+    env: a `PixelVectorEnv`.
+    policy: uint8 observations (N, H, W, C) → actions in [−1, 1], (N, A).
+    seed: the reset seed (fixes the initial states).
+  """
+  obs, _ = env.reset(seed=seed)
+  low, high = env.single_action_space.low, env.single_action_space.high
+  for _ in range(env.episode_length):
+    action = loop.to_env_action(np.asarray(policy(obs)), low, high)
+    obs, _, _, truncated, info = env.step(action)
+  if not truncated.all():
+    raise RuntimeError("episodes did not all end together; the env's episode length is off")
+  return np.asarray(info["episode_return"], np.float64)
+
+
+def _train_look(train_cfg: loop.TrainConfig):
+  return loop.parse_visual_seeds(train_cfg.visual_seeds)
+
+
+def _check_disjoint(test_seeds: np.ndarray, train_look) -> None:
+  from dmcr_jax import SeedRange
+  if isinstance(train_look, SeedRange):
+    inside = (test_seeds >= train_look.start) & (test_seeds < train_look.stop)
+  else:
+    inside = np.isin(test_seeds, np.atleast_1d(train_look))
+  if inside.any():
+    raise RuntimeError(f"test visual seeds {test_seeds[inside][:4]} lie in the training "
+                       "looks; the held-out range must never overlap them")
+
+
+def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None = None,
+             agents: list[int] | None = None, progress: bool = True) -> dict:
+  """Runs the protocol for a `train` run's agents; writes JSON, Markdown and PNG.
+
+  Args:
+    run_dir: the run's output folder (config.json + checkpoints).
+    cfg: the protocol's sizes and options.
+    out_dir: where the results go (default `<run_dir>/eval`).
+    agents: indices of the agents to evaluate (default: all).
+    progress: show a progress bar.
+
+  Returns:
+    The results (also in `<out_dir>/eval.json`): per agent the train return,
+    every condition's mean, std and per-episode returns, E_G per condition,
+    and the wall time.
+  """
+  import dmcr_jax
+  train_cfg, stacked, step = loop.load_run(run_dir)
+  conditions = check_eval_config(cfg, train_cfg.task)
+  specs = train_cfg.agents()
+  chosen = list(range(len(specs))) if agents is None else list(agents)
+  if not chosen or any(not 0 <= a < len(specs) for a in chosen):
+    raise ValueError(f"agents must be indices in [0, {len(specs)}), got {agents!r}")
+  out_dir = out_dir or os.path.join(run_dir, "eval")
+  os.makedirs(out_dir, exist_ok=True)
+  test_seeds = held_out_seeds(cfg.visual_seeds, cfg.seed)
+  train_look = _train_look(train_cfg)
+  _check_disjoint(test_seeds, train_look)
+  per_env_seeds = np.repeat(test_seeds, cfg.dynamics_seeds)
+  n = per_env_seeds.size
+
+  t_start = time.perf_counter()
+  env = dmcr_jax.make(train_cfg.task, num_envs=n, visual_seeds=train_look,
+                      vary=train_cfg.vary, frame_skip=train_cfg.action_repeat,
+                      frame_stack=train_cfg.frame_stack, image_size=train_cfg.image_size,
+                      seed=cfg.seed, quality=cfg.quality, workers=cfg.workers)
+  bar = None
+  if progress:
+    from tqdm.auto import tqdm
+    bar = tqdm(total=len(chosen) * (len(conditions) + 1), desc="evaluate", unit="condition")
+  results = []
+  with env:
+    for a in chosen:
+      agent = jax.tree.map(lambda x, a=a: x[a], stacked)
+      policy = lambda obs, agent=agent: greedy_action(agent, obs)
+      seed, aug = specs[a]
+      row = dict(agent=a, seed=seed, aug=aug, conditions={})
+      env.set_visuals(train_look, vary=train_cfg.vary)
+      t0 = time.perf_counter()
+      train_returns = run_episodes(env, policy, cfg.seed)[:cfg.train_episodes]
+      row["train"] = dict(mean=float(train_returns.mean()), std=float(train_returns.std()),
+                          episodes=train_returns.tolist(), wall_s=time.perf_counter() - t0)
+      if bar is not None:
+        bar.update(1)
+      for condition in conditions:
+        env.set_visuals(per_env_seeds, vary="none" if condition == "none" else condition)
+        t0 = time.perf_counter()
+        returns = run_episodes(env, policy, cfg.seed)
+        mean = float(returns.mean())
+        row["conditions"][condition] = dict(
+            mean=mean, std=float(returns.std()), episodes=returns.tolist(),
+            e_g=generalization_error(row["train"]["mean"], mean),
+            wall_s=time.perf_counter() - t0)
+        if bar is not None:
+          bar.update(1)
+          bar.set_postfix(agent=a, condition=condition, ret=f"{mean:.0f}")
+      results.append(row)
+  if bar is not None:
+    bar.close()
+  summary = dict(run_dir=run_dir, task=train_cfg.task, checkpoint_step=step,
+                 config=dataclasses.asdict(cfg), conditions=list(conditions),
+                 test_visual_seeds=test_seeds.tolist(),
+                 train_look=str(train_cfg.visual_seeds), agents=results,
+                 wall_s=time.perf_counter() - t_start)
+  summary["mean"] = _mean_row(results, conditions)
+  with open(os.path.join(out_dir, "eval.json"), "w") as f:
+    json.dump(summary, f, indent=1)
+  with open(os.path.join(out_dir, "eval.md"), "w") as f:
+    f.write(markdown(summary))
+  plot(summary, os.path.join(out_dir, "eval.png"))
+  return summary
+
+
+def _mean_row(results: list[dict], conditions) -> dict:
+  """The agents' mean train return, condition means and E_G of those means."""
+  train = float(np.mean([r["train"]["mean"] for r in results]))
+  means = {c: float(np.mean([r["conditions"][c]["mean"] for r in results]))
+           for c in conditions}
+  return dict(train=train, conditions=means,
+              e_g={c: generalization_error(train, m) for c, m in means.items()})
+
+
+def _paper_row(summary: dict) -> tuple[str, dict] | None:
+  augs = {r["aug"] for r in summary["agents"]}
+  if len(augs) != 1:
+    return None
+  method = paper_results.METHOD_OF_AUG.get(augs.pop())
+  row = paper_results.table4(summary["task"], method) if method else None
+  return None if row is None else (method, row)
+
+
+def markdown(summary: dict) -> str:
+  """The results as the paper's Table 4 (returns per condition) plus train and E_G."""
+  conditions = summary["conditions"]
+  cfg = summary["config"]
+  head = ["agent", "train"] + conditions + ["E_G (all)" if "all" in conditions else "E_G"]
+  lines = [f"Zero-shot evaluation of `{summary['run_dir']}` ({summary['task']}, checkpoint "
+           f"step {summary['checkpoint_step']:,}): train = mean return over "
+           f"{cfg['train_episodes']} initial states at the training look "
+           f"({summary['train_look']}); each condition = mean over {cfg['visual_seeds']} "
+           f"held-out visual seeds × {cfg['dynamics_seeds']} initial states; render "
+           f"quality {cfg['quality']}; E_G = (train − test) / train. Wall time "
+           f"{summary['wall_s']:.0f} s.", "",
+           "| " + " | ".join(head) + " |", "|---|" + "---:|" * (len(head) - 1)]
+  last = "all" if "all" in conditions else conditions[-1]
+
+  def line(label, train, means, e_g):
+    cells = [label, f"{train:.1f}"] + [f"{means[c]:.1f}" for c in conditions]
+    cells.append(f"{100 * e_g:.1f} %" if np.isfinite(e_g) else "–")
+    return "| " + " | ".join(cells) + " |"
+
+  for r in summary["agents"]:
+    means = {c: r["conditions"][c]["mean"] for c in conditions}
+    lines.append(line(f"seed {r['seed']}, {r['aug']}", r["train"]["mean"], means,
+                      r["conditions"][last]["e_g"]))
+  if len(summary["agents"]) > 1:
+    m = summary["mean"]
+    lines.append(line("**mean**", m["train"], m["conditions"], m["e_g"][last]))
+  paper = _paper_row(summary)
+  if paper is not None:
+    method, row = paper
+    cells = [f"paper, {method}", f"{row['none']:.1f}"]
+    cells += [f"{row[c]:.1f}" if c in row else "–" for c in conditions]
+    cells.append(f"{100 * generalization_error(row['none'], row['all']):.1f} %"
+                 if last == "all" else "–")
+    lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", f"The paper row is its Table 4 (five runs; its \"None\" column, shown "
+                  "under both train and none)."]
+  return "\n".join(lines) + "\n"
+
+
+def plot(summary: dict, png_path: str) -> None:
+  """Bar chart: mean return per condition (dots: agents; line: train; ×: paper)."""
+  import matplotlib
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt
+  conditions = summary["conditions"]
+  x = np.arange(len(conditions))
+  m = summary["mean"]
+  fig, ax = plt.subplots(figsize=(1.0 + 0.9 * len(conditions), 3.6))
+  ax.bar(x, [m["conditions"][c] for c in conditions], color="#4c72b0", alpha=0.8,
+         label="mean over agents")
+  for r in summary["agents"]:
+    ax.plot(x, [r["conditions"][c]["mean"] for c in conditions], "k.", alpha=0.6)
+  ax.axhline(m["train"], color="#dd8452", lw=1.5, label=f"train ({m['train']:.0f})")
+  paper = _paper_row(summary)
+  if paper is not None:
+    method, row = paper
+    ax.plot([i for i, c in enumerate(conditions) if c in row],
+            [row[c] for c in conditions if c in row], "rx", ms=8, label=f"paper {method}")
+  ax.set_xticks(x, conditions, rotation=30)
+  ax.set_ylabel("mean episode return")
+  ax.set_title(f"{summary['task']}: zero-shot returns per visual condition", fontsize=10)
+  ax.legend(fontsize=8, loc="lower left")
+  fig.tight_layout()
+  fig.savefig(png_path, dpi=100)
+  plt.close(fig)
+
+
+def main(argv=None) -> None:
+  """`evaluate RUN_DIR [options]`."""
+  d = EvalConfig()
+  p = argparse.ArgumentParser(prog="evaluate", description=__doc__.splitlines()[0])
+  p.add_argument("run_dir", help="a `train` output folder")
+  p.add_argument("--visual-seeds", type=int, default=d.visual_seeds)
+  p.add_argument("--dynamics-seeds", type=int, default=d.dynamics_seeds)
+  p.add_argument("--train-episodes", type=int, default=d.train_episodes)
+  p.add_argument("--seed", type=int, default=d.seed)
+  p.add_argument("--conditions", default=None,
+                 help="comma-separated (default: every condition that applies)")
+  p.add_argument("--agents", default=None, help="comma-separated agent indices")
+  p.add_argument("--quality", default=d.quality)
+  p.add_argument("--workers", type=int, default=None)
+  p.add_argument("--out", default=None, help="default: RUN_DIR/eval")
+  p.add_argument("--no-progress", action="store_true")
+  p.add_argument("--invariance", action="store_true",
+                 help="also the encoder-invariance plot (paper Fig. 5) of the first agent")
+  p.add_argument("--attention", action="store_true",
+                 help="also the encoder attention maps (paper Fig. 7) of the first agent")
+  p.add_argument("--video", action="store_true",
+                 help="also an episode video across visual seeds (MP4, else GIF)")
+  p.add_argument("--skip-protocol", action="store_true",
+                 help="only the extras asked for")
+  a = p.parse_args(argv)
+  try:
+    cfg = EvalConfig(visual_seeds=a.visual_seeds, dynamics_seeds=a.dynamics_seeds,
+                     train_episodes=a.train_episodes, seed=a.seed, quality=a.quality,
+                     workers=a.workers,
+                     conditions=tuple(a.conditions.split(",")) if a.conditions else None)
+    agents = [int(x) for x in a.agents.split(",")] if a.agents else None
+    check_eval_config(cfg, loop.load_config(a.run_dir).task)
+  except (ValueError, FileNotFoundError) as e:
+    p.error(str(e))
+  out = a.out or os.path.join(a.run_dir, "eval")
+  if not a.skip_protocol:
+    summary = evaluate(a.run_dir, cfg, out_dir=out, agents=agents,
+                       progress=not a.no_progress)
+    print(markdown(summary))
+  from train import analysis
+  first = (agents or [0])[0]
+  extra = dict(seed=cfg.seed, quality=cfg.quality, workers=cfg.workers)
+  if a.invariance:
+    analysis.encoder_invariance(a.run_dir, out, agent=first, looks=cfg.visual_seeds, **extra)
+    print(f"wrote {out}/invariance.png and invariance.json")
+  if a.attention:
+    print("wrote", analysis.attention_maps(a.run_dir, out, agent=first, **extra))
+  if a.video:
+    print("wrote", analysis.episode_video(a.run_dir, out, agent=first, **extra))
+
+
+if __name__ == "__main__":
+  main()
