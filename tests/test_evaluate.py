@@ -96,7 +96,7 @@ def test_protocol_table_arithmetic_and_determinism(run_dir, tmp_path):
   assert os.path.getsize(tmp_path / "a" / "eval.png") > 0
 
   # The same checkpoint and seeds give the same episodes, return for return.
-  some = ("floor", "all")
+  some = ("all",)
   again = ev.evaluate(run_dir, ev.EvalConfig(**{**TINY.__dict__, "conditions": some}),
                       out_dir=str(tmp_path / "b"), agents=[1], progress=False)
   assert again["agents"][0]["train"]["episodes"] == first["agents"][1]["train"]["episodes"]
