@@ -355,7 +355,12 @@ def main(argv=None) -> None:
                      workers=a.workers,
                      conditions=tuple(a.conditions.split(",")) if a.conditions else None)
     agents = [int(x) for x in a.agents.split(",")] if a.agents else None
-    check_eval_config(cfg, loop.load_config(a.run_dir).task)
+    task = loop.load_config(a.run_dir).task
+    if a.skip_protocol:
+      from dmcr_jax.visuals.tiled import check_quality
+      check_quality(cfg.quality)
+    else:
+      check_eval_config(cfg, task)
   except (ValueError, FileNotFoundError) as e:
     p.error(str(e))
   out = a.out or os.path.join(a.run_dir, "eval")
