@@ -198,11 +198,7 @@ class PixelVectorEnv(gymnasium.vector.VectorEnv):
         np.shape(a) != np.shape(b) for a, b in zip(jax.tree.leaves(state),
                                                    jax.tree.leaves(self._es))):
       raise ValueError("state must be an EnvState shaped like env.state")
-    self._es = jax.tree.map(jnp.asarray, state)
-    host = self._fetch(self._es, None, None)
-    self._obs = self._output(self._render(host, restart=None))
-    self._needs_reset = np.asarray(jax.device_get(self._es.needs_reset), bool).copy()
-    return self._obs, self._info(host)
+    return self._start_from(jax.tree.map(jnp.asarray, state))
 
   # gymnasium API -------------------------------------------------------------
 
@@ -224,11 +220,7 @@ class PixelVectorEnv(gymnasium.vector.VectorEnv):
         raise ValueError(f"seed must be an int or None, got {seed!r}")
       self._key = jax.random.key(int(seed))
     self._key, key = jax.random.split(self._key)
-    self._es = self._init(key, self._seed_arg)
-    host = self._fetch(self._es, None, None)
-    self._obs = self._output(self._render(host, restart=None))
-    self._needs_reset = np.zeros(self.num_envs, bool)
-    return self._obs, self._info(host)
+    return self._start_from(self._init(key, self._seed_arg))
 
   def step(self, actions):
     """One agent step of every env (NEXT_STEP auto-reset, see the module docstring).
@@ -300,6 +292,14 @@ class PixelVectorEnv(gymnasium.vector.VectorEnv):
             f"frame_stack={self.frame_stack}, image={self.height}x{self.width})")
 
   # Internals ------------------------------------------------------------------
+
+  def _start_from(self, es: physics_env.EnvState):
+    """Makes `es` the current state and renders fresh frame stacks from it."""
+    self._es = es
+    host = self._fetch(es, None, None)
+    self._obs = self._output(self._render(host, restart=None))
+    self._needs_reset = np.asarray(jax.device_get(es.needs_reset), bool).copy()
+    return self._obs, self._info(host)
 
   def _use_seeds(self) -> None:
     """Points `_init`/`_step` at the current seed source. Fixed seeds are a traced

@@ -18,7 +18,6 @@ physics. The host half (`dmcr_jax.env`) renders the pixels.
 
 from __future__ import annotations
 
-from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -138,12 +137,3 @@ def step(task: Task, seeds: SeedSource, frame_skip: int, es: EnvState,
   truncated = jnp.where(resetting, False, stepped.done)
   return nxt.replace(needs_reset=truncated), reward, truncated
 
-
-def make_step(task: Task, seeds: SeedSource, frame_skip: int) -> Callable:
-  """`step` jitted for one task, seed source and frame skip: `(es, actions) -> …`."""
-  return jax.jit(lambda es, a: step(task, seeds, frame_skip, es, a))
-
-
-def make_init(task: Task, seeds: SeedSource, num_envs: int) -> Callable:
-  """`init` jitted: `key -> EnvState`."""
-  return jax.jit(lambda key: init(task, seeds, key, num_envs))

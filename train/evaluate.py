@@ -36,6 +36,7 @@ import time
 import jax
 import numpy as np
 
+from dmcr_jax.checks import positive_int
 from train import loop, paper_results, sac
 
 FACTOR_CONDITIONS: tuple[str, ...] = ("light", "camera", "body", "floor", "background",
@@ -100,9 +101,7 @@ def check_eval_config(cfg: EvalConfig, task: str) -> tuple[str, ...]:
   """Validates `cfg` for `task`; returns the conditions to run."""
   from dmcr_jax.visuals.tiled import check_quality
   for name in ("visual_seeds", "dynamics_seeds", "train_episodes"):
-    v = getattr(cfg, name)
-    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-      raise ValueError(f"{name} must be a positive int, got {v!r}")
+    positive_int(name, getattr(cfg, name))
   if cfg.train_episodes > cfg.visual_seeds * cfg.dynamics_seeds:
     raise ValueError(f"train_episodes ({cfg.train_episodes}) must be at most "
                      f"visual_seeds · dynamics_seeds = {cfg.visual_seeds * cfg.dynamics_seeds}")

@@ -54,6 +54,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dmcr_jax.checks import positive_int
 from train import replay, sac
 
 
@@ -137,9 +138,7 @@ def check_config(cfg: TrainConfig) -> None:
   parse_visual_seeds(cfg.visual_seeds)
   for name in ("steps", "num_envs", "buffer_capacity", "image_size", "frame_stack",
                "log_every"):
-    v = getattr(cfg, name)
-    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-      raise ValueError(f"{name} must be a positive int, got {v!r}")
+    positive_int(name, getattr(cfg, name))
   if not cfg.seeds or len(set(cfg.seeds)) != len(cfg.seeds):
     raise ValueError(f"seeds must be distinct ints, got {cfg.seeds!r}")
   if cfg.warmup_steps < 0 or cfg.checkpoint_every < 0:
