@@ -1,0 +1,145 @@
+"""End-to-end training time: one `train` run (cartpole-balance by default), timed.
+
+Runs the `train` command's parse and `train.loop.train` in this process with the
+arguments given (unknown ones go to `train`; see ``python -m train --help``) on
+top of the README's H100 command (cartpole-balance, 50,000 training steps, 16
+envs, bfloat16, dm_control's exact look, no intermediate checkpoints), into a
+fresh run folder, and reports: the wall time of the training loop (compilation
+included, as `train` reports it) and of the whole run (env start-up too),
+transitions per second per agent, the first training step (and its loop time)
+at which an episode's return reached ``--threshold``, and the final return
+(mean of the last episodes, as `train` computes it). There is no baseline in the
+same run: the paper's reference is a return (SAC+AUG, cartpole-balance: 987.4),
+not a time.
+
+    python -m benchmarks.training --out benchmarks/results/train_h100.jsonl
+    python -m benchmarks.training --steps 2000 --num-envs 4 --quality fastest --out /tmp/t.jsonl
+
+One JSON line per run appended to `--out`, a Markdown table beside it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import datetime
+import json
+import os
+import shutil
+import sys
+import tempfile
+import time
+
+DEFAULT_TRAIN_ARGS = ("--task", "cartpole-balance", "--steps", "50000", "--num-envs", "16",
+                      "--dtype", "bfloat16", "--quality", "exact", "--checkpoint-every", "0",
+                      "--log-every", "500")
+"""The `train` arguments of the README's H100 run; given arguments override them."""
+
+
+def first_reaching(log_rows: list[dict], threshold: float) -> dict | None:
+  """The first log.csv row (by step) whose episode return is at least `threshold`.
+
+  Args:
+    log_rows: rows of a run's log.csv (strings, as `csv.DictReader` gives them).
+    threshold: the return to reach.
+
+  Returns:
+    {"step", "wall_s", "episode_return"} or None if no episode reached it.
+  """
+  hits = [r for r in log_rows if float(r["episode_return"]) >= threshold]
+  if not hits:
+    return None
+  r = min(hits, key=lambda r: (int(r["step"]), float(r["wall_s"])))
+  return dict(step=int(r["step"]), wall_s=float(r["wall_s"]),
+              episode_return=float(r["episode_return"]))
+
+
+def run(train_argv: list[str], threshold: float, run_dir: str) -> dict:
+  """Trains with `train_argv` into `run_dir`; one result row."""
+  from train import __main__ as train_cli
+  from train import loop
+
+  cfg, _ = train_cli.parse(list(train_argv) + ["--out", run_dir])
+  t0 = time.perf_counter()
+  summary = loop.train(cfg, progress=False)
+  process_s = time.perf_counter() - t0
+  with open(os.path.join(run_dir, "log.csv")) as f:
+    log_rows = list(csv.DictReader(f))
+  hit = first_reaching(log_rows, threshold)
+  finals = [v for v in (summary.get("final_return") or {}).values() if v is not None]
+  import jax
+  device = jax.devices()[0]
+  agents = len(cfg.agents())
+  return dict(
+      bench="train", device=device.device_kind, platform=device.platform,
+      jax=jax.__version__, cpus=os.cpu_count(), task=cfg.task, steps=summary["steps"],
+      agents=agents, num_envs=cfg.num_envs, quality=cfg.quality,
+      dtype=cfg.sac.compute_dtype, batch_size=cfg.sac.batch_size, utd=cfg.utd,
+      action_repeat=cfg.action_repeat, wall_s=summary["wall_s"], process_s=process_s,
+      transitions_per_s=summary["steps"] / summary["wall_s"] if summary["wall_s"] else None,
+      episodes=len(log_rows), final_return=sum(finals) / len(finals) if finals else None,
+      threshold=threshold, step_at_threshold=hit and hit["step"],
+      time_to_threshold_s=hit and hit["wall_s"], interrupted=summary["interrupted"],
+      train_args=list(train_argv), run_dir=run_dir,
+      time_utc=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"))
+
+
+def markdown(rows: list[dict]) -> str:
+  """The rows as one Markdown table."""
+  lines = ["| device | task | agents × envs | steps | dtype | quality | loop wall s "
+           "| whole run s | transitions/s | first ≥ threshold (step, s) | final return | UTC |",
+           "|---|---|---|---:|---|---|---:|---:|---:|---|---:|---|"]
+  for r in rows:
+    hit = (f"≥ {r['threshold']:g}: {r['step_at_threshold']:,}, {r['time_to_threshold_s']:.0f} s"
+           if r.get("step_at_threshold") is not None else f"never ≥ {r['threshold']:g}")
+    final = "–" if r.get("final_return") is None else f"{r['final_return']:.1f}"
+    lines.append(f"| {r['device']} | {r['task']} | {r['agents']} × {r['num_envs']} | "
+                 f"{r['steps']:,} | {r['dtype']} | {r['quality']} | {r['wall_s']:,.1f} | "
+                 f"{r['process_s']:,.1f} | {r['transitions_per_s'] or 0:,.1f} | {hit} | "
+                 f"{final} | {r['time_utc'][11:16]} |")
+  return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> None:
+  """Command-line entry: one run, appended to --out, and the Markdown beside."""
+  argv = sys.argv[1:] if argv is None else argv
+  p = argparse.ArgumentParser(
+      description=__doc__.splitlines()[0],
+      allow_abbrev=False,
+      epilog="Other arguments go to `train` (after the defaults "
+             f"{' '.join(DEFAULT_TRAIN_ARGS)}, so they override them).")
+  p.add_argument("--threshold", type=float, default=900.0,
+                 help="the return whose first reaching is timed (default: %(default)s)")
+  p.add_argument("--run-dir", default=None,
+                 help="train's output folder, checkpoints included (default: a new folder "
+                      "in the system's temporary folder; its log.csv and learning curve "
+                      "are copied beside --out)")
+  p.add_argument("--out", default=None, help="JSONL path (appended to); .md beside")
+  a, train_argv = p.parse_known_args(argv)
+  if "--resume" in train_argv:
+    p.error("--resume is not timed here: start a new run")
+  if a.run_dir and os.path.exists(os.path.join(a.run_dir, "checkpoints")):
+    p.error(f"--run-dir {a.run_dir} already holds a run; give a new folder")
+  run_dir = a.run_dir or tempfile.mkdtemp(prefix="dmcr_train_bench_")
+  row = run(list(DEFAULT_TRAIN_ARGS) + train_argv, a.threshold, run_dir)
+  print(json.dumps(row), flush=True)
+  rows = [row]
+  if a.out:
+    os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
+    stem = os.path.splitext(a.out)[0]
+    for name, suffix in (("log.csv", "_log.csv"), ("learning_curve.png", "_curve.png")):
+      if os.path.exists(os.path.join(run_dir, name)):
+        shutil.copyfile(os.path.join(run_dir, name), stem + suffix)
+    with open(a.out, "a") as f:
+      f.write(json.dumps(row) + "\n")
+    with open(a.out) as f:
+      rows = [json.loads(line) for line in f if line.strip()]
+    with open(os.path.splitext(a.out)[0] + ".md", "w") as f:
+      f.write(f"Rows of `python -m benchmarks.training` appended to "
+              f"`{os.path.basename(a.out)}`; the last run: `python -m benchmarks.training "
+              f"{' '.join(argv)}` ({os.cpu_count()} cores).\n\n" + markdown(rows))
+  print(markdown(rows))
+
+
+if __name__ == "__main__":
+  main()
