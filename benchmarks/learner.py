@@ -1,4 +1,4 @@
-"""Benchmark of the SAC+AUG learner: gradient updates per second.
+"""Benchmark of the learner (SAC+AUG, CURL, SAC+AE): gradient updates per second.
 
 Times exactly what `train.loop` runs: `loop._update`, a jitted call that scans
 ``--pairs`` `sac.update_pair`s (two updates each, actor and targets on the
@@ -6,8 +6,10 @@ second) for K agents, each sampling its own batches from its own full device
 replay buffer (random 84×84 frames, 3-frame stacks rebuilt at sampling, as in
 training), with the paper's defaults (batch 256, DrQ augmentation, β = .9,
 λ = 1e-5). Each row varies the number of agents K, the compute dtype (float32,
-bfloat16) and how the agents are batched (``vmap``: one batched computation,
-``map``: one after the other inside the call). The baseline measured in the same
+bfloat16), how the agents are batched (``vmap``: one batched computation,
+``map``: one after the other inside the call) and, with ``--algos``, the
+algorithm (`train.sac.ALGOS`; each at its own defaults: CURL samples 100×100
+frames and crops them to 84, SAC+AE uses batch 128 unless ``--batch`` is given). The baseline measured in the same
 run is a plain Python loop over one jitted `sac.update` per gradient step (one
 agent, float32, batch sampled in the same call), i.e. one host dispatch per update
 as a PyTorch-style loop does.
@@ -19,7 +21,7 @@ Rows go to ``--out`` (JSON lines, appended) and a Markdown table beside it.
 Usage::
 
     python -m benchmarks.learner [--agents 1,8] [--dtypes float32,bfloat16] \\
-        [--loops vmap,map] [--batch 256] [--pairs 25] [--out PATH]
+        [--loops vmap,map] [--algos sac_aug,curl,sac_ae] [--batch 256] [--pairs 25] [--out PATH]
 """
 
 from __future__ import annotations
@@ -74,10 +76,18 @@ def _timed(call, state, seconds: float, min_reps: int = 3):
   return np.asarray(times), state
 
 
-def bench_scanned(k: int, dtype: str, agent_loop: str, batch: int, pairs: int, size: int,
-                  stack: int, action_size: int, capacity: int, seconds: float) -> dict:
-  """Updates/s of `loop._update` for K agents; one result row."""
-  config = sac.SACConfig(batch_size=batch, compute_dtype=dtype)
+def bench_scanned(k: int, dtype: str, agent_loop: str, batch: int | None, pairs: int,
+                  size: int, stack: int, action_size: int, capacity: int, seconds: float,
+                  algo: str = "sac_aug") -> dict:
+  """Updates/s of `loop._update` for K agents; one result row.
+
+  `batch` None takes the algorithm's default; for CURL the frames are rendered
+  ``curl_crop + 16`` pixels (`size` is the encoder's input).
+  """
+  config = sac.SACConfig(algo=algo, batch_size=batch, compute_dtype=dtype,
+                         **({"curl_crop": size} if algo == "curl" else {}))
+  if algo == "curl":
+    size = size + 16
   obs_shape = (size, size, 3 * stack)
   agents = _agents(k, obs_shape, action_size, config)
   buffers = filled_buffers(k, capacity, size, stack, action_size)
@@ -96,17 +106,19 @@ def bench_scanned(k: int, dtype: str, agent_loop: str, batch: int, pairs: int, s
   times, _ = _timed(call, agents, seconds)
   per_call = float(np.median(times))
   updates = 2 * pairs
-  return dict(kind="scanned", agents=k, dtype=dtype, agent_loop=agent_loop, batch=batch,
+  return dict(kind="scanned", algo=algo, agents=k, dtype=dtype, agent_loop=agent_loop,
+              batch=config.batch_size, frame_side=size,
               pairs_per_call=pairs, compile_s=round(compile_s, 2), reps=int(times.size),
               ms_per_call=round(per_call * 1e3, 3),
               updates_per_s_per_agent=round(updates / per_call, 1),
               agent_updates_per_s=round(k * updates / per_call, 1))
 
 
-def bench_python_loop(batch: int, size: int, stack: int, action_size: int, capacity: int,
+def bench_python_loop(batch: int | None, size: int, stack: int, action_size: int, capacity: int,
                       seconds: float) -> dict:
   """The baseline: one jitted `sac.update` (with its sampling) per host call."""
   config = sac.SACConfig(batch_size=batch)
+  batch = config.batch_size
   agent = _agents(1, (size, size, 3 * stack), action_size, config)
   agent = jax.tree.map(lambda x: x[0], agent)
   buffer = jax.tree.map(lambda x: x[0], filled_buffers(1, capacity, size, stack, action_size))
@@ -133,7 +145,8 @@ def bench_python_loop(batch: int, size: int, stack: int, action_size: int, capac
   _, agent = _timed(call, agent, 0.0, 1)
   times, _ = _timed(call, agent, seconds)
   per_update = float(np.median(times)) / n
-  return dict(kind="python_loop", agents=1, dtype="float32", agent_loop="-", batch=batch,
+  return dict(kind="python_loop", algo="sac_aug", agents=1, dtype="float32", agent_loop="-",
+              batch=batch,
               pairs_per_call=0, compile_s=round(compile_s, 2), reps=int(times.size),
               ms_per_call=round(per_update * 1e3, 3),
               updates_per_s_per_agent=round(1 / per_update, 1),
@@ -142,13 +155,14 @@ def bench_python_loop(batch: int, size: int, stack: int, action_size: int, capac
 
 def markdown(rows: list[dict]) -> str:
   """All rows as one Markdown table, newest last."""
-  lines = ["| device | kind | agents | dtype | agent loop | batch | updates per call | "
+  lines = ["| device | kind | algo | agents | dtype | agent loop | batch | updates per call | "
            "compile s | ms per call | updates/s per agent | agent-updates/s | × baseline "
-           "| UTC |", "|---|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---|"]
+           "| UTC |", "|---|---|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---|"]
   for r in rows:
     ratio = r.get("x_baseline")
     lines.append(
-        f"| {r['device_kind']} | {r['kind']} | {r['agents']} | {r['dtype']} | "
+        f"| {r['device_kind']} | {r['kind']} | {r.get('algo', 'sac_aug')} | {r['agents']} | "
+        f"{r['dtype']} | "
         f"{r['agent_loop']} | {r['batch']} | {2 * r['pairs_per_call'] or 1} | "
         f"{r['compile_s']:.1f} | {r['ms_per_call']:.1f} | "
         f"{r['updates_per_s_per_agent']:,.0f} | {r['agent_updates_per_s']:,.0f} | "
@@ -162,7 +176,9 @@ def main(argv=None) -> None:
   p.add_argument("--agents", default="1,8", help="comma-separated K values")
   p.add_argument("--dtypes", default="float32,bfloat16")
   p.add_argument("--loops", default="vmap,map", help="agent batching for K > 1")
-  p.add_argument("--batch", type=int, default=256)
+  p.add_argument("--algos", default="sac_aug", help="comma-separated: sac_aug, curl, sac_ae")
+  p.add_argument("--batch", type=int, default=None,
+                 help="default: each algorithm's (256; SAC+AE 128)")
   p.add_argument("--pairs", type=int, default=25, help="update pairs per jitted call")
   p.add_argument("--size", type=int, default=84)
   p.add_argument("--stack", type=int, default=3)
@@ -175,6 +191,9 @@ def main(argv=None) -> None:
   a = p.parse_args(argv)
   for dtype in a.dtypes.split(","):
     sac.SACConfig(compute_dtype=dtype)  # fails early on a bad name
+  for name in a.algos.split(","):
+    if name not in sac.ALGOS:
+      p.error(f"--algos: {name!r} is not one of {', '.join(sac.ALGOS)}")
   for name in a.loops.split(","):
     if name not in loop.AGENT_LOOPS:
       p.error(f"--loops: {name!r} is not one of {', '.join(loop.AGENT_LOOPS)}")
@@ -193,11 +212,12 @@ def main(argv=None) -> None:
   todo = []
   if not a.no_baseline:
     todo.append(lambda: bench_python_loop(**shape))
-  for k in map(int, a.agents.split(",")):
-    for dtype in a.dtypes.split(","):
-      for agent_loop in (a.loops.split(",") if k > 1 else ["vmap"]):
-        todo.append(functools.partial(bench_scanned, k, dtype, agent_loop,
-                                      pairs=a.pairs, **shape))
+  for algo in a.algos.split(","):
+    for k in map(int, a.agents.split(",")):
+      for dtype in a.dtypes.split(","):
+        for agent_loop in (a.loops.split(",") if k > 1 else ["vmap"]):
+          todo.append(functools.partial(bench_scanned, k, dtype, agent_loop,
+                                        pairs=a.pairs, algo=algo, **shape))
   for job in todo:
     row = dict(job(), **common)
     if row["kind"] == "python_loop":

@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import functools
 import time
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import gymnasium
 import jax
@@ -222,11 +222,15 @@ class PixelVectorEnv(gymnasium.vector.VectorEnv):
     self._key, key = jax.random.split(self._key)
     return self._start_from(self._init(key, self._seed_arg))
 
-  def step(self, actions):
+  def step(self, actions, *, while_rendering: Callable[[], Any] | None = None):
     """One agent step of every env (NEXT_STEP auto-reset, see the module docstring).
 
     Args:
       actions: float (N, action_size), finite (clipped to the action bounds).
+      while_rendering: called once the physics results are on the host and
+        before the render workers start: a place to dispatch asynchronous device
+        work (the training loop dispatches its updates there, so the accelerator
+        computes them while the CPU renders). Its time counts as "render".
 
     Returns:
       (observations, rewards, terminated, truncated, info).
@@ -244,6 +248,8 @@ class PixelVectorEnv(gymnasium.vector.VectorEnv):
     t1 = time.perf_counter()
     host = self._fetch(self._es, reward, truncated)
     t2 = time.perf_counter()
+    if while_rendering is not None:
+      while_rendering()
     stacked = self._render(host, restart=self._needs_reset)
     t3 = time.perf_counter()
     obs = self._obs = self._output(stacked)

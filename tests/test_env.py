@@ -27,20 +27,25 @@ def env():
     yield e
 
 
+@pytest.fixture(scope="module")
+def one_step(env):
+  """`Task.step` for a single env, jitted once for the tests that compare with it."""
+  return jax.jit(env.task.step)
+
+
 def _actions(rng, env, n=None):
   return rng.uniform(-1, 1, (n or env.num_envs, env.task.action_size)).astype(np.float32)
 
 
-def test_rewards_and_states_equal_the_model(env):
+def test_rewards_and_states_equal_the_model(env, one_step):
   task = env.task
   env.reset(seed=11)
   state = env.state.task
   # skip_step is `frame_skip` plain Task.steps with the rewards summed.
   s = s0 = jax.tree.map(lambda x: x[0], state)
-  one = jax.jit(task.step)
   total = 0.0
   for _ in range(SKIP):
-    s = one(s, jnp.ones(1))
+    s = one_step(s, jnp.ones(1))
     total += float(s.reward)
   s_skip, r_skip = jax.jit(lambda s: physics_env.skip_step(task, s, jnp.ones(1), SKIP))(s0)
   np.testing.assert_allclose(float(r_skip), total, rtol=1e-5)
@@ -110,6 +115,24 @@ def test_same_seed_same_pixels(env):
   # reset() without a seed continues the key stream: a new episode.
   env.reset(seed=21)
   assert not np.array_equal(env.reset()[0], a[0])
+
+
+def test_while_rendering_runs_once_between_physics_and_render(env):
+  # The training loop dispatches its updates through this hook; it must see the
+  # stepped physics, run once per step and leave the step's results unchanged.
+  rng = np.random.default_rng(4)
+  actions = [_actions(rng, env) for _ in range(3)]
+  env.reset(seed=5)
+  plain = [env.step(a) for a in actions]
+  env.reset(seed=5)
+  seen = []
+  for a, want in zip(actions, plain):
+    before = np.asarray(env.state.task.data.qpos)
+    got = env.step(a, while_rendering=lambda: seen.append(np.asarray(env.state.task.data.qpos)))
+    assert not np.array_equal(seen[-1], before)  # physics already stepped
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+  assert len(seen) == len(actions)
 
 
 def test_set_visuals_and_set_state_act_like_a_fresh_env(env):
@@ -229,14 +252,13 @@ def test_memory_does_not_grow_over_10000_steps():
   assert after - before < 20, f"RSS grew from {before:.0f} to {after:.0f} MiB"
 
 
-def test_frame_skip_that_does_not_divide_the_episode_ends_it_on_time(env):
+def test_frame_skip_that_does_not_divide_the_episode_ends_it_on_time(env, one_step):
   task = env.task
   env.reset(seed=0)
   s = jax.tree.map(lambda x: x[0], env.state.task).replace(step_count=jnp.int32(900))
-  one = jax.jit(task.step)
   ref, total = s, 0.0
   for _ in range(100):  # only 100 control steps are left of the episode
-    ref = one(ref, jnp.ones(1))
+    ref = one_step(ref, jnp.ones(1))
     total += float(ref.reward)
   out, reward = jax.jit(lambda s: physics_env.skip_step(task, s, jnp.ones(1), 300))(s)
   assert int(out.step_count) == 1000 and bool(out.done)
@@ -245,9 +267,10 @@ def test_frame_skip_that_does_not_divide_the_episode_ends_it_on_time(env):
 
 
 def test_views_of_shared_memory_stay_valid_until_the_step_after_next():
-  with dmcr_jax.make(TASK, num_envs=2, visual_seeds=[1, 2], frame_skip=SKIP, image_size=16,
+  # Sized like the module's env (3 envs, fixed seeds, SKIP): its physics compilation is reused.
+  with dmcr_jax.make(TASK, num_envs=3, visual_seeds=[1, 2, 3], frame_skip=SKIP, image_size=16,
                      workers=1, copy_obs=False) as env:
-    a = np.zeros((2, 1), np.float32)
+    a = np.zeros((3, 1), np.float32)
     o0, _ = env.reset(seed=0)
     c0 = o0.copy()
     o1 = env.step(a)[0]

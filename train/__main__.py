@@ -1,6 +1,7 @@
-"""`train` / `python -m train`: train SAC+AUG agents on a DMCR task from pixels.
+"""`train` / `python -m train`: train SAC+AUG, CURL or SAC+AE agents on a DMCR task from pixels.
 
     train --task cartpole-balance --steps 50000 --seeds 0,1,2 --aug drq
+    train --task cartpole-balance --algo curl      # or --algo sac_ae
 
 One agent per seed and augmentation (`--aug drq,cj+drq --seeds 0,1,2`: 6 agents,
 trained together in one process). `--steps` counts the paper's training steps
@@ -10,26 +11,37 @@ Arguments are checked before anything is compiled. Outputs go to `--out`
 (default `runs/<task>-<aug>`): log.csv, learning_curve.png, summary.json and
 orbax checkpoints; `--resume` continues from the latest checkpoint (see
 `train.loop` for what is restored: agents, step and RNG key, not the buffers).
+
+`--algo` picks the learner (`train.sac.ALGOS`); unset options take its defaults
+(`train.sac.ALGO_DEFAULTS`: CURL renders at 100 and crops to 84 and takes no
+`--aug`; SAC+AE uses batch 128 and no augmentation unless `--aug` names one).
+CURL on cheetah uses learning rate 2e-4 for the critic, actor and encoder (the
+paper's Table 6) unless `--lr` is given.
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 
 from train.loop import TrainConfig, check_config, train
-from train.sac import SACConfig
+from train.sac import ALGOS, SACConfig
 
 
 def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
   d, s = TrainConfig(), SACConfig()
   p = argparse.ArgumentParser(prog="train", description=__doc__.splitlines()[0])
   p.add_argument("--task", default=d.task, help="a DMCR task (default: %(default)s)")
-  p.add_argument("--aug", default=s.aug,
+  p.add_argument("--algo", default=s.algo, choices=ALGOS,
+                 help="learner: sac_aug (default), curl or sac_ae")
+  p.add_argument("--aug", default=None,
                  help="augmentation name, e.g. drq, cj+drq, nr+drq; comma-separated "
-                      "names train one agent per name and seed")
+                      "names train one agent per name and seed (default: drq for "
+                      "sac_aug, none for sac_ae; curl takes none)")
+  p.add_argument("--lr", type=float, default=None,
+                 help="learning rate of the critic, actor and encoder (default 1e-3; "
+                      "2e-4 for curl on cheetah)")
   p.add_argument("--steps", type=int, default=d.steps,
                  help="training steps (transitions) per agent")
   p.add_argument("--seeds", default="0", help="comma-separated: one agent per seed")
@@ -43,8 +55,10 @@ def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
   p.add_argument("--warmup-steps", type=int, default=d.warmup_steps,
                  help="random-action training steps per agent before learning")
   p.add_argument("--buffer-capacity", type=int, default=d.buffer_capacity)
-  p.add_argument("--batch-size", type=int, default=s.batch_size)
-  p.add_argument("--image-size", type=int, default=d.image_size)
+  p.add_argument("--batch-size", type=int, default=None,
+                 help="default: 256 (128 for sac_ae)")
+  p.add_argument("--image-size", type=int, default=None,
+                 help="rendered side (default: 84; 100 for curl)")
   p.add_argument("--quality", default=d.quality, help="render preset: exact, fast, fastest")
   p.add_argument("--workers", type=int, default=None, help="render workers")
   p.add_argument("--dtype", default=s.compute_dtype,
@@ -59,8 +73,12 @@ def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
   a = p.parse_args(argv)
   try:
     seeds = tuple(int(x) for x in a.seeds.split(","))
-    sac_cfg = dataclasses.replace(s, aug=a.aug, batch_size=a.batch_size,
-                                  compute_dtype=a.dtype)
+    lr = a.lr
+    if lr is None and a.algo == "curl" and a.task.startswith("cheetah"):
+      lr = 2e-4
+    rates = {} if lr is None else dict(critic_lr=lr, actor_lr=lr, encoder_lr=lr)
+    sac_cfg = SACConfig(algo=a.algo, aug=a.aug, batch_size=a.batch_size,
+                        compute_dtype=a.dtype, **rates)
     visual = a.visual_seeds if a.visual_seeds.startswith("levels:") else int(a.visual_seeds)
     cfg = TrainConfig(task=a.task, steps=a.steps, seeds=seeds, num_envs=a.num_envs,
                       action_repeat=a.action_repeat, visual_seeds=visual, vary=a.vary,
@@ -68,12 +86,20 @@ def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
                       buffer_capacity=a.buffer_capacity, image_size=a.image_size,
                       quality=a.quality, workers=a.workers, log_every=a.log_every,
                       checkpoint_every=a.checkpoint_every, agent_loop=a.agent_loop,
-                      out_dir=a.out or f"runs/{a.task}-{a.aug.replace(',', '_')}",
+                      out_dir=a.out or default_out(a.task, sac_cfg),
                       sac=sac_cfg)
     check_config(cfg)
   except ValueError as e:
     p.error(str(e))
   return cfg, a
+
+
+def default_out(task: str, sac_cfg: SACConfig) -> str:
+  """runs/<task>-<aug> for SAC+AUG, runs/<task>-<algo>[-<aug>] otherwise."""
+  aug = sac_cfg.aug.replace(",", "_")
+  if sac_cfg.algo == "sac_aug":
+    return f"runs/{task}-{aug}"
+  return f"runs/{task}-{sac_cfg.algo}" + ("" if aug == "none" else f"-{aug}")
 
 
 def main(argv=None) -> None:

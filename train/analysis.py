@@ -26,6 +26,7 @@ import numpy as np
 
 from train import loop, sac
 from train.evaluate import greedy_action, held_out_seeds
+from train.networks import center_crop
 
 
 def _agent(run_dir: str, index: int):
@@ -142,6 +143,8 @@ def attention_maps(run_dir: str, out_dir: str, agent: int = 0, steps: int = 20,
   seeds = np.array([train_look, held_out_seeds(1, seed)[0]])
   with _make_env(cfg, 2, seeds, "floor", quality, workers, seed) as env:
     obs = same_state_observations(env, state, steps, seed)
+  if state.networks.encoder.input_size is not None:  # CURL: show what the encoder sees
+    obs = np.asarray(center_crop(jnp.asarray(obs), state.networks.encoder.input_size))
   maps = [np.asarray(m) for m in conv_activations(state.networks.encoder,
                                                   state.params["encoder"], jnp.asarray(obs))]
   import matplotlib

@@ -210,7 +210,9 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
       agent = jax.tree.map(lambda x, a=a: x[a], stacked)
       policy = lambda obs, agent=agent: greedy_action(agent, obs)
       seed, aug = specs[a]
-      row = dict(agent=a, seed=seed, aug=aug, conditions={})
+      algo = train_cfg.sac.algo
+      row = dict(agent=a, seed=seed, aug=aug, algo=algo,
+                 method=paper_results.method_name(algo, aug), conditions={})
       done = {}
       if share_none:
         # The training look is the default one, which "none" shows too, and the
@@ -268,11 +270,19 @@ def _mean_row(results: list[dict], conditions) -> dict:
               e_g={c: generalization_error(train, m) for c, m in means.items()})
 
 
+def _label(row: dict) -> str:
+  """An agent's name in the table: its augmentation (SAC+AUG) or algorithm (+ aug)."""
+  algo, aug = row.get("algo", "sac_aug"), row["aug"]
+  if algo == "sac_aug":
+    return aug
+  return algo if aug == "none" else f"{algo}, {aug}"
+
+
 def _paper_row(summary: dict) -> tuple[str, dict] | None:
-  augs = {r["aug"] for r in summary["agents"]}
-  if len(augs) != 1:
+  methods = {r.get("method") for r in summary["agents"]}
+  if len(methods) != 1:
     return None
-  method = paper_results.METHOD_OF_AUG.get(augs.pop())
+  method = methods.pop()
   row = paper_results.table4(summary["task"], method) if method else None
   return None if row is None else (method, row)
 
@@ -299,7 +309,7 @@ def markdown(summary: dict) -> str:
 
   for r in summary["agents"]:
     means = {c: r["conditions"][c]["mean"] for c in conditions}
-    lines.append(line(f"seed {r['seed']}, {r['aug']}", r["train"]["mean"], means,
+    lines.append(line(f"seed {r['seed']}, {_label(r)}", r["train"]["mean"], means,
                       r["conditions"][last]["e_g"]))
   if len(summary["agents"]) > 1:
     m = summary["mean"]

@@ -1,13 +1,17 @@
-"""The SAC+AUG training loop: K agents vmapped, each acting in its own N pixel envs.
+"""The training loop (SAC+AUG, CURL, SAC+AE): K agents, each acting in its own N pixel envs.
 
 One `dmcr_jax.make` env of K·N envs serves all agents (agent k acts in envs
 k·N … k·N + N − 1); agents, replay buffers and their updates carry a leading
 agent axis K and run as one vmapped, jitted call, sharded over the local devices
 along that axis when K divides evenly. Per agent step (one `env.step`, the host
 boundary): act (jitted), step the envs, add the transition to every agent's
-buffer (jitted, buffers donated), and, once the warm-up is over, run the updates
-owed so far as one `lax.scan` over `sac.update_pair` (so "actor and targets every
-2 updates" holds). `utd` gradient updates are owed per agent step of each env.
+buffer (jitted, buffers donated). Once the warm-up is over, the updates owed so
+far run as one `lax.scan` over `sac.update_pair` (so "actor and targets every 2
+updates" holds), dispatched inside `env.step` between its physics and its
+rendering (`while_rendering`), so the accelerator runs them while the CPU
+renders; they sample the buffers before the step's new transitions are added,
+the order of the DrQ, CURL and SAC-AE training loops (update, then env step).
+`utd` gradient updates are owed per agent step of each env.
 
 Agents: one per (augmentation, seed) pair: `seeds` × `sac.aug_names` (e.g.
 ``aug="drq,cj+drq"`` with 3 seeds trains 6 agents; an agent's network init
@@ -80,7 +84,8 @@ class TrainConfig:
       learning (Table 6: 1,000).
     utd: gradient updates per training step (Table 6: 1).
     buffer_capacity: transitions per agent (Table 6: 100,000).
-    image_size, frame_stack: observation size (Table 6: 84, 3).
+    image_size, frame_stack: observation size (Table 6: 84, 3). None = 84, or for
+      CURL `sac.curl_crop` + 16 (100: CURL renders larger and crops to 84).
     quality: render preset (`dmcr_jax.visuals.tiled.QUALITY`).
     workers: render workers (None: one per core).
     log_every: steps between progress-bar and CSV metric updates.
@@ -101,7 +106,7 @@ class TrainConfig:
   warmup_steps: int = 1000
   utd: float = 1.0
   buffer_capacity: int = 100_000
-  image_size: int = 84
+  image_size: int | None = None
   frame_stack: int = 3
   quality: str = "exact"
   workers: int | None = None
@@ -110,6 +115,11 @@ class TrainConfig:
   out_dir: str = "runs/default"
   agent_loop: str | None = None
   sac: sac.SACConfig = sac.SACConfig()
+
+  def __post_init__(self):
+    if self.image_size is None:
+      size = self.sac.curl_crop + 16 if self.sac.algo == "curl" else 84
+      object.__setattr__(self, "image_size", size)
 
   def agents(self) -> list[tuple[int, str]]:
     """(seed, augmentation) of each agent, in the order of the agent axis."""
@@ -155,6 +165,10 @@ def check_config(cfg: TrainConfig) -> None:
                      f"{cfg.agent_loop!r}")
   if cfg.image_size < 16:
     raise ValueError(f"image_size must be >= 16 for the encoder, got {cfg.image_size}")
+  if cfg.sac.algo == "curl" and cfg.image_size <= cfg.sac.curl_crop:
+    raise ValueError(f"CURL crops {cfg.sac.curl_crop}-pixel windows: image_size must be "
+                     f"> curl_crop ({cfg.sac.curl_crop}; CURL renders "
+                     f"{cfg.sac.curl_crop + 16}), got {cfg.image_size}")
 
 
 # Jitted pieces (vmapped over the agent axis K) ------------------------------------
@@ -378,6 +392,8 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
     log_path = os.path.join(cfg.out_dir, "log.csv")
     fields = ["step", "agent", "seed", "aug", "episode_return", "wall_s", "agent_steps_per_s",
               "critic_loss", "actor_loss", "alpha", "q"]
+    if cfg.sac.algo != "sac_aug":
+      fields.append("aux_loss")
     new_log = not (resume and os.path.exists(log_path))
     log_file = open(log_path, "w" if new_log else "a", newline="")
     writer = csv.DictWriter(log_file, fieldnames=fields)
@@ -397,14 +413,16 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
         obs_k = _put(jnp.asarray(obs.reshape((k, n) + obs.shape[1:])), mesh)
         action = _act(agents, obs_k, _put(jax.random.split(k_act, k), mesh),
                       random=step < cfg.warmup_steps, mesh=mesh)
-        before = step
+        before, step = step, step + n
         env_action = to_env_action(np.asarray(action).reshape(k * n, action_size), low, high)
-        next_obs, reward, _, truncated, info = env.step(env_action)
-        buffers = _add(buffers, obs_k[..., -3:], _put(jnp.asarray(first.reshape(k, n)), mesh),
-                       action, _put(jnp.asarray(reward.reshape(k, n)), mesh), mesh=mesh)
-        obs, first = next_obs, info["episode_step"] == 0
-        step += n
-        if step > cfg.warmup_steps:
+
+        def dispatch_updates():
+          """The updates owed for this step's N transitions, dispatched while the env
+          renders; they sample the buffer as it was before this step's transitions
+          (the order of the DrQ, CURL and SAC-AE loops: update, then env step)."""
+          nonlocal agents, metrics, owed, ready
+          if step <= cfg.warmup_steps:
+            return
           owed += cfg.utd * (step - max(before, cfg.warmup_steps))
           pairs = int(owed // 2)
           # Every buffer must hold a valid transition (checked until it does).
@@ -416,6 +434,12 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
               agents, metrics = _update(agents, buffers, keys, chunk, cfg.sac, mesh=mesh,
                                         agent_loop=agent_loop, unroll=on_cpu)
             owed -= 2 * pairs
+
+        next_obs, reward, _, truncated, info = env.step(env_action,
+                                                        while_rendering=dispatch_updates)
+        buffers = _add(buffers, obs_k[..., -3:], _put(jnp.asarray(first.reshape(k, n)), mesh),
+                       action, _put(jnp.asarray(reward.reshape(k, n)), mesh), mesh=mesh)
+        obs, first = next_obs, info["episode_step"] == 0
         wall = time.perf_counter() - t0
         for i in np.flatnonzero(truncated):
           a = i // n

@@ -14,6 +14,8 @@ field, so tests use tiny networks. ``dtype`` is the compute dtype of the
 convolutions and dense layers (parameters stay float32; LayerNorm, tanh and the
 policy's log-densities are computed in float32): "bfloat16" halves the memory
 traffic of the convolutions on GPUs (benchmarks/learner.py measures it).
+`Decoder` is SAC+AE's deconvolutional decoder, the encoder mirrored back to the
+observation's size; `Encoder.input_size` center-crops larger inputs (CURL).
 """
 
 from __future__ import annotations
@@ -41,22 +43,30 @@ class Encoder(nn.Module):
     feature_dim: size of the output features (paper: 50).
     num_layers: number of convolutions; the first has stride 2, the rest 1.
     dtype: compute dtype of the convolutions and the dense layer.
+    input_size: None, or the side the convolutions see: larger inputs are
+      center-cropped to it (CURL renders 100 and crops to 84).
   """
   channels: int = 32
   feature_dim: int = 50
   num_layers: int = 4
   dtype: str = "float32"
+  input_size: int | None = None
 
   @nn.compact
   def __call__(self, obs: jax.Array) -> jax.Array:
     """Encodes a batch of observations.
 
     Args:
-      obs: uint8 (B, H, W, C), channels last (C = 3·frame stack).
+      obs: uint8 (B, H, W, C), channels last (C = 3·frame stack). With
+        `input_size` set, larger images are center-cropped to it first (CURL's
+        acting and evaluation; its training crops are random and come in at
+        `input_size` already).
 
     Returns:
       float32 (B, feature_dim), each entry in (−1, 1).
     """
+    if self.input_size is not None:
+      obs = center_crop(obs, self.input_size)
     x = obs.astype(self.dtype) / 255.0
     for i in range(self.num_layers):
       stride = 2 if i == 0 else 1
@@ -67,6 +77,76 @@ class Encoder(nn.Module):
     x = x.reshape(x.shape[0], -1)
     x = nn.Dense(self.feature_dim, kernel_init=_DENSE_INIT, dtype=self.dtype, name="fc")(x)
     return jnp.tanh(nn.LayerNorm(name="norm")(x.astype(jnp.float32)))
+
+
+def center_crop(images: jax.Array, size: int) -> jax.Array:
+  """The central size × size window of (B, H, W, C) images (unchanged if H = W = size).
+
+  Args:
+    images: (B, H, W, C) with H, W ≥ size.
+    size: the output side.
+
+  Returns:
+    (B, size, size, C); the window starts at ((H − size) // 2, (W − size) // 2),
+    as CURL's `center_crop_image` does.
+  """
+  h, w = images.shape[1:3]
+  if h < size or w < size:
+    raise ValueError(f"cannot center-crop {h}×{w} images to {size}×{size}")
+  top, left = (h - size) // 2, (w - size) // 2
+  return images[:, top:top + size, left:left + size]
+
+
+def encoder_sides(side: int, num_layers: int = 4) -> list[int]:
+  """The spatial side after each of the encoder's convolutions (3×3 VALID; stride 2, then 1)."""
+  sides = [(side - 3) // 2 + 1]
+  for _ in range(num_layers - 1):
+    sides.append(sides[-1] - 2)
+  return sides
+
+
+class Decoder(nn.Module):
+  """Features → pixels: SAC+AE's deconvolutional decoder, the encoder mirrored.
+
+  Dense(channels·s·s) on the features (s = the encoder's last side), ReLU,
+  reshape, (num_layers − 1) × ReLU(ConvTranspose(channels, 3×3, stride 1)),
+  then ConvTranspose(out_channels, 3×3, stride 2) back to the input side (the
+  last layer's padding plays the part of PyTorch's ``output_padding``). No
+  output activation: it regresses SAC+AE's pre-processed pixels in [−.5, .5).
+
+  Attributes:
+    side: the observation's side (H = W) to reconstruct.
+    out_channels: the observation's channels (3·frame stack).
+    channels: filters of the hidden deconvolutions (the encoder's, 32).
+    num_layers: the encoder's number of convolutions (4).
+    dtype: compute dtype of the layers (the output is float32).
+  """
+  side: int
+  out_channels: int
+  channels: int = 32
+  num_layers: int = 4
+  dtype: str = "float32"
+
+  @nn.compact
+  def __call__(self, features: jax.Array) -> jax.Array:
+    """Reconstructs (B, side, side, out_channels) float32 images from (B, F) features."""
+    sides = encoder_sides(self.side, self.num_layers)
+    s = sides[-1]
+    x = nn.Dense(self.channels * s * s, kernel_init=_DENSE_INIT, dtype=self.dtype,
+                 name="fc")(features)
+    x = nn.relu(x).reshape(features.shape[0], s, s, self.channels)
+    for i in range(self.num_layers - 1):
+      x = nn.relu(nn.ConvTranspose(self.channels, (3, 3), padding="VALID",
+                                   kernel_init=_CONV_INIT, dtype=self.dtype,
+                                   name=f"deconv{i}")(x))
+    # Stride 2 from sides[0] back to `side`: the dilated input has 2·sides[0] − 1
+    # pixels, the 3×3 kernel removes 2, so `side` needs side − 2·sides[0] + 3 of
+    # padding: 2 before (a full transposed convolution) and the rest after.
+    after = self.side - 2 * sides[0] + 1
+    x = nn.ConvTranspose(self.out_channels, (3, 3), strides=(2, 2),
+                         padding=((2, after), (2, after)), kernel_init=_DENSE_INIT,
+                         dtype=self.dtype, name="out")(x)
+    return x.astype(jnp.float32)
 
 
 class MLP(nn.Module):

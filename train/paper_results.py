@@ -55,6 +55,16 @@ METHOD_OF_AUG: dict[str, str] = {"drq": "SAC+AUG", "cj+drq": "SAC+CJ+AUG",
 """The paper's method name for an SAC+AUG run trained with this augmentation."""
 
 
+def method_name(algo: str, aug: str) -> str | None:
+  """The paper's name for an agent trained with `algo` ("sac_aug", "curl", "sac_ae")
+  and augmentation `aug`, or None when the paper has no such method."""
+  if algo == "sac_aug":
+    return METHOD_OF_AUG.get(aug)
+  if aug == "none":
+    return {"curl": "CURL", "sac_ae": "SAC+AE"}.get(algo)
+  return None
+
+
 def table4(task: str, method: str) -> dict[str, float] | None:
   """The paper's Table 4 row for `task` and `method` as {condition: return}, or None."""
   row = _TABLE.get(task, {}).get(method)

@@ -1,4 +1,5 @@
-"""SAC+AUG, the DMCR paper's learner (Sec. 3.2, appendix, Table 6), as pure JAX functions.
+"""SAC+AUG, the DMCR paper's learner (Sec. 3.2, appendix, Table 6), as pure JAX functions;
+with `SACConfig.algo`, also its baselines CURL and SAC+AE on the same SAC.
 
 One immutable `AgentState`; `update` is pure and jittable, with ``update_actor``
 static, so `jax.vmap` over K agents and `jax.lax.scan` over `update_pair` (a
@@ -29,6 +30,16 @@ stay cheap. The losses, for a batch of B transitions (o, a, r, d, o′):
 
 In an update with ``update_actor=True`` the critic steps first; the actor then uses
 the updated encoder and critic (as SAC-AE, CURL and DrQ do), then α, then targets.
+
+CURL (``algo="curl"``, `train.curl`): instead of β mixing, every row of o and o′ is
+a random crop of the larger rendered observation (anchor, o′), the SAC losses
+above run on them (λ = 0), and after the targets one more Adam step on the
+encoder and the bilinear W minimises InfoNCE between the anchors (online
+encoder) and independent positive crops (target encoder, no gradient). SAC+AE
+(``algo="sac_ae"``, `train.sac_ae`): the SAC losses on the (un-augmented by
+default) batch, then one Adam step on the encoder and the decoder on the
+reconstruction loss. Both auxiliary steps run every update, as in the original
+code, with their own Adam states (`aux_optimizer`).
 """
 
 from __future__ import annotations
@@ -43,7 +54,9 @@ import jax.numpy as jnp
 import optax
 
 from dmcr_jax import augment
-from train.networks import LOG_STD_MAX, LOG_STD_MIN, Actor, Critic, Encoder
+from train import curl, sac_ae
+from train.networks import (LOG_STD_MAX, LOG_STD_MIN, Actor, Critic, Decoder, Encoder,
+                            encoder_sides)
 from train.replay import Batch  # what `replay.sample` returns and `update` consumes
 
 Params = Any
@@ -51,6 +64,17 @@ Metrics = dict[str, jax.Array]
 
 COMPUTE_DTYPES = ("float32", "bfloat16")
 """What `SACConfig.compute_dtype` accepts."""
+
+ALGOS = ("sac_aug", "curl", "sac_ae")
+"""What `SACConfig.algo` accepts: the paper's SAC+AUG, CURL and SAC+AE."""
+
+ALGO_DEFAULTS = {
+    "sac_aug": dict(batch_size=256, aug="drq", beta=0.9, lam=1e-5),
+    "curl": dict(batch_size=256, aug="none", beta=1.0, lam=0.0),
+    "sac_ae": dict(batch_size=128, aug="none", beta=1.0, lam=0.0),
+}
+"""What a `SACConfig` field left as None becomes, per algorithm (paper Table 6:
+batch 128 for SAC+AE; CURL and SAC+AE train without `dmcr_jax.augment`)."""
 
 
 # --------------------------------------------------------------------------- #
@@ -68,10 +92,15 @@ def _is_real(x) -> bool:
 
 @dataclasses.dataclass(frozen=True)
 class SACConfig:
-  """SAC+AUG hyperparameters; defaults are the paper's Table 6 (and Sec. 3.2).
+  """Learner hyperparameters; defaults are the paper's Table 6 (and Sec. 3.2).
+
+  Fields given as None take the algorithm's value from `ALGO_DEFAULTS`.
 
   Attributes:
-    batch_size: transitions per update (256).
+    algo: "sac_aug" (the paper's SAC+AUG, default), "curl" (SAC with CURL's
+      contrastive loss, `train.curl`) or "sac_ae" (SAC with SAC+AE's decoder,
+      `train.sac_ae`).
+    batch_size: transitions per update (256; SAC+AE 128).
     gamma: discount factor (.99).
     critic_lr: Adam learning rate of the critic heads (1e-3).
     actor_lr: Adam learning rate of the actor (1e-3).
@@ -82,9 +111,13 @@ class SACConfig:
     encoder_tau: Polyak rate of the target encoder (.05).
     critic_tau: Polyak rate of the target critic (.01).
     update_delay: one actor/α/target update per this many critic updates (2).
-    beta: fraction of each batch that is augmented (Sec. 3.2: .9).
-    lam: weight λ of the feature-matching term (Sec. 3.2: 1e-5).
-    aug: augmentation name, any name `dmcr_jax.augment.get` accepts ("drq"); or
+    beta: fraction of each batch that is augmented (Sec. 3.2: .9; 1 for CURL
+      and SAC+AE, which augment every row when they augment).
+    lam: weight λ of the feature-matching term (Sec. 3.2: 1e-5; 0 for CURL and
+      SAC+AE).
+    aug: augmentation name, any name `dmcr_jax.augment.get` accepts ("drq";
+      "none" for CURL, whose random crops are part of the algorithm, and for
+      SAC+AE, which the paper trains without augmentation); or
       several separated by commas ("drq,cj+drq"): then each agent uses the one
       its `AgentState.aug_index` picks (K agents with different augmentations
       vmap together; see `aug_names`).
@@ -96,8 +129,14 @@ class SACConfig:
     compute_dtype: "float32" (default) or "bfloat16", the compute dtype of the
       networks' convolutions and dense layers (parameters, optimizer states,
       losses and the policy's log-densities stay float32).
+    curl_crop: CURL's crop side, the encoder's input (84); observations are
+      rendered larger (`TrainConfig.image_size`, 100 for CURL).
+    decoder_latent_lambda: SAC+AE's weight λ_z of the latent L2 penalty (1e-6).
+    decoder_weight_lambda: SAC+AE's decoder weight decay λ_w (1e-7).
+    decoder_bits: bits per value of SAC+AE's reconstruction target (5).
   """
-  batch_size: int = 256
+  algo: str = "sac_aug"
+  batch_size: int | None = None
   gamma: float = 0.99
   critic_lr: float = 1e-3
   actor_lr: float = 1e-3
@@ -108,22 +147,32 @@ class SACConfig:
   encoder_tau: float = 0.05
   critic_tau: float = 0.01
   update_delay: int = 2
-  beta: float = 0.9
-  lam: float = 1e-5
-  aug: str = "drq"
+  beta: float | None = None
+  lam: float | None = None
+  aug: str | None = None
   feature_dim: int = 50
   hidden_dim: int = 1024
   conv_channels: int = 32
   log_std_min: float = LOG_STD_MIN
   log_std_max: float = LOG_STD_MAX
   compute_dtype: str = "float32"
+  curl_crop: int = 84
+  decoder_latent_lambda: float = 1e-6
+  decoder_weight_lambda: float = 1e-7
+  decoder_bits: int = 5
 
   def __post_init__(self):
     def fail(field, value, want):
       raise ValueError(f"SACConfig.{field} must be {want}, got {value!r}")
 
+    if self.algo not in ALGOS:
+      fail("algo", self.algo, f"one of {', '.join(ALGOS)}")
+    for field, value in ALGO_DEFAULTS[self.algo].items():
+      if getattr(self, field) is None:
+        object.__setattr__(self, field, value)
+
     for field in ("batch_size", "update_delay", "feature_dim", "hidden_dim",
-                  "conv_channels"):
+                  "conv_channels", "curl_crop"):
       value = getattr(self, field)
       if not _is_int(value) or value < 1:
         fail(field, value, "a positive int")
@@ -159,6 +208,20 @@ class SACConfig:
         raise ValueError(f"SACConfig.aug: {e}") from None
     if self.compute_dtype not in COMPUTE_DTYPES:
       fail("compute_dtype", self.compute_dtype, f"one of {', '.join(COMPUTE_DTYPES)}")
+    for field in ("decoder_latent_lambda", "decoder_weight_lambda"):
+      value = getattr(self, field)
+      if not _is_real(value) or value < 0:
+        fail(field, value, "a finite number ≥ 0")
+    if not _is_int(self.decoder_bits) or not 1 <= self.decoder_bits <= 8:
+      fail("decoder_bits", self.decoder_bits, "an int in 1 … 8")
+    if self.algo == "curl" and (self.aug != "none" or self.beta != 1 or self.lam != 0):
+      raise ValueError(
+          "SACConfig(algo='curl'): CURL crops every row itself (observations rendered "
+          "larger, random crops of curl_crop), so aug, beta and lam do not apply; got "
+          f"aug={self.aug!r}, beta={self.beta!r}, lam={self.lam!r} (leave them unset)")
+    if self.lam > 0 and self.aug_names == ("none",):
+      raise ValueError(f"SACConfig.lam = {self.lam!r} needs an augmentation (with "
+                       "aug='none' the λ term is identically 0); set lam=0 or an aug")
 
   @property
   def aug_names(self) -> tuple[str, ...]:
@@ -185,30 +248,42 @@ class SACConfig:
 
 
 class Networks(NamedTuple):
-  """The three flax modules of an agent (static: they hold no parameters)."""
+  """The flax modules of an agent (static: they hold no parameters)."""
   encoder: Encoder
   actor: Actor
   critic: Critic
+  decoder: Decoder | None = None  # SAC+AE only
 
 
-def make_networks(action_size: int, config: SACConfig) -> Networks:
-  """Builds the encoder, actor and twin critic for `config` (paper Table 6).
+def make_networks(action_size: int, config: SACConfig,
+                  obs_shape: tuple[int, int, int] | None = None) -> Networks:
+  """Builds the encoder, actor and twin critic (and SAC+AE's decoder) for `config`.
 
   Args:
     action_size: |A|.
-    config: the hyperparameters (widths and log-std range are read).
+    config: the hyperparameters (algorithm, widths and log-std range are read).
+    obs_shape: (H, W, C) of one observation; needed for SAC+AE's decoder.
 
   Returns:
-    A `Networks`.
+    A `Networks` (paper Table 6). For CURL the encoder center-crops inputs larger
+    than `config.curl_crop`.
   """
   dtype = config.compute_dtype
+  decoder = None
+  if config.algo == "sac_ae":
+    if obs_shape is None:
+      raise ValueError("make_networks needs obs_shape for SAC+AE's decoder")
+    decoder = Decoder(side=obs_shape[0], out_channels=obs_shape[2],
+                      channels=config.conv_channels, dtype=dtype)
   return Networks(
       encoder=Encoder(channels=config.conv_channels, feature_dim=config.feature_dim,
-                      dtype=dtype),
+                      dtype=dtype,
+                      input_size=config.curl_crop if config.algo == "curl" else None),
       actor=Actor(action_size=action_size, hidden_dim=config.hidden_dim,
                   log_std_min=config.log_std_min, log_std_max=config.log_std_max,
                   dtype=dtype),
-      critic=Critic(hidden_dim=config.hidden_dim, dtype=dtype))
+      critic=Critic(hidden_dim=config.hidden_dim, dtype=dtype),
+      decoder=decoder)
 
 
 @flax.struct.dataclass
@@ -216,12 +291,15 @@ class AgentState:
   """Everything one SAC+AUG agent learns: an immutable pytree (vmap it for K agents).
 
   Attributes:
-    params: ``{"encoder", "critic", "actor"}`` flax parameter trees.
+    params: ``{"encoder", "critic", "actor"}`` flax parameter trees, and
+      ``"curl"`` (``{"w": W}``) for CURL or ``"decoder"`` for SAC+AE.
     log_alpha: float32 scalar, log of the temperature α.
     target_params: ``{"encoder", "critic"}``, Polyak averages of the online ones.
     critic_opt_state: the one Adam state over ``{"encoder", "critic"}``.
     actor_opt_state: Adam state of the actor.
     alpha_opt_state: Adam state of log α.
+    aux_opt_state: Adam state of the auxiliary step over ``{"encoder", "curl"}``
+      (CURL) or ``{"encoder", "decoder"}`` (SAC+AE); None for SAC+AUG.
     step: int32, the number of critic updates done.
     aug_index: int32, which of `SACConfig.aug_names` this agent trains with.
     networks: the modules (static, not a pytree node).
@@ -232,6 +310,7 @@ class AgentState:
   critic_opt_state: optax.OptState
   actor_opt_state: optax.OptState
   alpha_opt_state: optax.OptState
+  aux_opt_state: optax.OptState | None
   step: jax.Array
   aug_index: jax.Array
   networks: Networks = flax.struct.field(pytree_node=False)
@@ -272,14 +351,31 @@ def alpha_optimizer(config: SACConfig) -> optax.GradientTransformation:
   return optax.adam(config.alpha_lr)
 
 
+def aux_optimizer(config: SACConfig) -> optax.GradientTransformation | None:
+  """The auxiliary step's optimizer: its own Adam states, as in the original code.
+
+  CURL: Adam(`encoder_lr`) over ``{"encoder", "curl"}``. (CURL's code steps the
+  encoder with two Adam optimizers on the same contrastive gradient, its
+  `encoder_optimizer` and `cpc_optimizer`; here it takes one step.) SAC+AE:
+  Adam(`encoder_lr`) for the encoder and, for the decoder, weight decay
+  λ_w·θ added to the gradient before Adam (PyTorch Adam's ``weight_decay``).
+  None for SAC+AUG.
+  """
+  if config.algo == "curl":
+    return optax.adam(config.encoder_lr)
+  if config.algo == "sac_ae":
+    return optax.multi_transform(
+        {"encoder": optax.adam(config.encoder_lr),
+         "decoder": optax.chain(optax.add_decayed_weights(config.decoder_weight_lambda),
+                                optax.adam(config.encoder_lr))},
+        {"encoder": "encoder", "decoder": "decoder"})
+  return None
+
+
 # --------------------------------------------------------------------------- #
 # Initialisation and acting.
 # --------------------------------------------------------------------------- #
 
-
-def _encoder_out_side(side: int, num_layers: int) -> int:
-  side = (side - 3) // 2 + 1
-  return side - 2 * (num_layers - 1)
 
 
 def init_agent(key: jax.Array, obs_shape: tuple[int, int, int], action_size: int,
@@ -304,12 +400,21 @@ def init_agent(key: jax.Array, obs_shape: tuple[int, int, int], action_size: int
   if (len(obs_shape) != 3 or not all(_is_int(d) and d > 0 for d in obs_shape)
       or obs_shape[2] % 3):
     raise ValueError(f"obs_shape must be (H, W, 3·stack), got {obs_shape}")
-  if min(_encoder_out_side(s, 4) for s in obs_shape[:2]) < 1:
+  seen = min(obs_shape[:2])
+  if config.algo == "curl":
+    if seen < config.curl_crop:
+      raise ValueError(f"CURL crops {config.curl_crop}×{config.curl_crop} windows out "
+                       f"of the observations, but obs_shape is {obs_shape} (render "
+                       f"larger, e.g. image_size = {config.curl_crop + 16})")
+    seen = config.curl_crop
+  if encoder_sides(seen)[-1] < 1:
     raise ValueError(f"obs_shape {obs_shape} is too small for the encoder's four "
                      f"3×3 VALID convolutions (need H, W ≥ 15)")
+  if config.algo == "sac_ae" and obs_shape[0] != obs_shape[1]:
+    raise ValueError(f"SAC+AE's decoder reconstructs square images, got {obs_shape}")
   if not _is_int(action_size) or action_size < 1:
     raise ValueError(f"action_size must be a positive int, got {action_size!r}")
-  networks = make_networks(action_size, config)
+  networks = make_networks(action_size, config, obs_shape)
   k_encoder, k_actor, k_critic = jax.random.split(key, 3)
   features = jnp.zeros((1, config.feature_dim), jnp.float32)
   encoder = networks.encoder.init(k_encoder, jnp.zeros((1, *obs_shape), jnp.uint8))
@@ -318,14 +423,22 @@ def init_agent(key: jax.Array, obs_shape: tuple[int, int, int], action_size: int
                                 jnp.zeros((1, action_size), jnp.float32))
   log_alpha = jnp.asarray(math.log(config.init_alpha), jnp.float32)
   copy = lambda tree: jax.tree_util.tree_map(jnp.array, tree)
+  params = {"encoder": encoder, "critic": critic, "actor": actor}
+  aux = {}
+  if config.algo == "curl":
+    aux = {"curl": {"w": curl.init_w(jax.random.fold_in(key, 3), config.feature_dim)}}
+  elif config.algo == "sac_ae":
+    aux = {"decoder": networks.decoder.init(jax.random.fold_in(key, 3), features)}
+  aux_opt = aux_optimizer(config)
   return AgentState(
-      params={"encoder": encoder, "critic": critic, "actor": actor},
+      params={**params, **aux},
       log_alpha=log_alpha,
       target_params={"encoder": copy(encoder), "critic": copy(critic)},
       critic_opt_state=critic_optimizer(config).init(
           {"encoder": encoder, "critic": critic}),
       actor_opt_state=actor_optimizer(config).init(actor),
       alpha_opt_state=alpha_optimizer(config).init(log_alpha),
+      aux_opt_state=None if aux_opt is None else aux_opt.init({"encoder": encoder, **aux}),
       step=jnp.zeros((), jnp.int32),
       aug_index=jnp.asarray(aug_index, jnp.int32),
       networks=networks)
@@ -582,20 +695,22 @@ def _check_batch(agent: AgentState, batch: Batch, config: SACConfig):
   if batch.reward.shape != (size,) or batch.discount.shape != (size,):
     raise ValueError(f"Batch.reward and Batch.discount must be (B,) = ({size},), got "
                      f"{batch.reward.shape} and {batch.discount.shape}")
-  if agent.networks != make_networks(action_size, config):
-    raise ValueError("the agent's networks do not match the config's sizes "
-                     "(feature_dim, hidden_dim, conv_channels, log-std range)")
+  if agent.networks != make_networks(action_size, config, obs.shape[1:]):
+    raise ValueError("the agent's networks do not match the config's (algo, "
+                     "feature_dim, hidden_dim, conv_channels, log-std range, image size)")
 
 
 def update(agent: AgentState, batch: Batch, key: jax.Array, config: SACConfig, *,
            update_actor: bool) -> tuple[AgentState, Metrics]:
-  """One SAC+AUG update (pure, jittable; `config` and `update_actor` static).
+  """One learner update (pure, jittable; `config` and `update_actor` static).
 
-  Augments and β-mixes the batch, takes one Adam step of the encoder and critic on
-  L_encoder = L_critic + L_λ; with `update_actor`, then one actor step on L_actor
-  (with the new encoder and critic), one log α step on L_α, and the Polyak target
-  updates (module docstring). The key is split the same way either way, so the
-  critic step does not depend on `update_actor`.
+  Augments and β-mixes the batch (CURL: crops it, `train.curl.crops`), takes one
+  Adam step of the encoder and critic on L_encoder = L_critic + L_λ; with
+  `update_actor`, then one actor step on L_actor (with the new encoder and
+  critic), one log α step on L_α, and the Polyak target updates (module
+  docstring); then, for CURL and SAC+AE, one step of their auxiliary loss on the
+  encoder and W or the decoder (`aux_step`). The key is split the same way
+  either way, so the critic step does not depend on `update_actor`.
 
   Args:
     agent: the agent.
@@ -606,12 +721,20 @@ def update(agent: AgentState, batch: Batch, key: jax.Array, config: SACConfig, *
 
   Returns:
     (new agent, metrics): scalars "critic_loss", "lam_loss", "q", "alpha"; with
-    `update_actor` also "actor_loss", "alpha_loss", "entropy" (−mean log π).
+    `update_actor` also "actor_loss", "alpha_loss", "entropy" (−mean log π);
+    for CURL and SAC+AE "aux_loss" (and SAC+AE's "reconstruction_loss",
+    "latent_loss").
   """
   _check_batch(agent, batch, config)
   aug_key, target_key, actor_key = jax.random.split(key, 3)
-  mixed, z_obs = augment_and_mix(aug_key, batch, agent_augmentation(agent, config),
-                                 config.beta)
+  positive = None
+  if config.algo == "curl":
+    anchor, next_obs, positive = curl.crops(aug_key, batch.obs, batch.next_obs,
+                                            config.curl_crop)
+    mixed, z_obs = batch._replace(obs=anchor, next_obs=next_obs), None
+  else:
+    mixed, z_obs = augment_and_mix(aug_key, batch, agent_augmentation(agent, config),
+                                   config.beta)
 
   critic_params = {"encoder": agent.params["encoder"],
                    "critic": agent.params["critic"]}
@@ -642,8 +765,86 @@ def update(agent: AgentState, batch: Batch, key: jax.Array, config: SACConfig, *
                           alpha_opt_state=alpha_opt_state)
     agent = soft_update_targets(agent, config)
     metrics.update(actor_loss=loss, alpha_loss=temp_loss, entropy=-jnp.mean(log_prob))
+  if config.algo != "sac_aug":
+    aux_input = positive if config.algo == "curl" else mixed.obs
+    agent, aux_metrics = aux_step(agent, mixed.obs, aux_input,
+                                  jax.random.fold_in(key, 3), config)
+    metrics.update(aux_metrics)
   metrics["alpha"] = jnp.exp(agent.log_alpha)
   return agent, metrics
+
+
+def curl_loss(aux_params: Params, agent: AgentState, anchor: jax.Array,
+              positive: jax.Array) -> tuple[jax.Array, Metrics]:
+  """CURL's InfoNCE loss, a function of ``{"encoder", "curl"}`` (`train.curl`).
+
+  Queries are the online encoder's features of the anchors (gradient), keys the
+  target (momentum) encoder's features of the positives (no gradient).
+
+  Args:
+    aux_params: ``{"encoder": …, "curl": {"w": W}}``, the differentiated parameters.
+    agent: the agent (its target encoder).
+    anchor: uint8 (B, S, S, C), the anchor crops (also the critic's o).
+    positive: uint8 (B, S, S, C), independent crops of the same observations.
+
+  Returns:
+    (loss, {"aux_loss": loss}).
+  """
+  encoder = agent.networks.encoder
+  queries = encoder.apply(aux_params["encoder"], anchor)
+  keys = jax.lax.stop_gradient(encoder.apply(agent.target_params["encoder"], positive))
+  loss = curl.info_nce(queries, keys, aux_params["curl"]["w"])
+  return loss, {"aux_loss": loss}
+
+
+def reconstruction_loss(aux_params: Params, agent: AgentState, obs: jax.Array,
+                        key: jax.Array, config: SACConfig) -> tuple[jax.Array, Metrics]:
+  """SAC+AE's L_rec + λ_z·latent penalty, a function of ``{"encoder", "decoder"}``.
+
+  Args:
+    aux_params: ``{"encoder": …, "decoder": …}``, the differentiated parameters.
+    agent: the agent (its modules).
+    obs: uint8 (B, H, W, C), the critic's observations.
+    key: a `jax.random` key for the target's dither.
+    config: the hyperparameters (`decoder_bits`, `decoder_latent_lambda`).
+
+  Returns:
+    (loss, {"aux_loss", "reconstruction_loss", "latent_loss"}).
+  """
+  nets = agent.networks
+  target = sac_ae.reconstruction_target(key, obs, config.decoder_bits)
+  features = nets.encoder.apply(aux_params["encoder"], obs)
+  reconstruction = nets.decoder.apply(aux_params["decoder"], features)
+  loss, metrics = sac_ae.loss(reconstruction, target, features, config.decoder_latent_lambda)
+  return loss, {"aux_loss": loss, **metrics}
+
+
+def aux_step(agent: AgentState, obs: jax.Array, aux_input: jax.Array, key: jax.Array,
+             config: SACConfig) -> tuple[AgentState, Metrics]:
+  """One step of CURL's or SAC+AE's auxiliary loss on the encoder and its partner.
+
+  Args:
+    agent: the agent, after its SAC step.
+    obs: uint8 (B, S, S, C), the critic's observations (CURL's anchors).
+    aux_input: CURL: the positive crops; SAC+AE: the observations to reconstruct.
+    key: a `jax.random` key (SAC+AE's dither).
+    config: the hyperparameters; `algo` must be "curl" or "sac_ae".
+
+  Returns:
+    (new agent, metrics).
+  """
+  partner = "curl" if config.algo == "curl" else "decoder"
+  aux_params = {"encoder": agent.params["encoder"], partner: agent.params[partner]}
+  if config.algo == "curl":
+    grads, metrics = jax.grad(curl_loss, has_aux=True)(aux_params, agent, obs, aux_input)
+  else:
+    grads, metrics = jax.grad(reconstruction_loss, has_aux=True)(
+        aux_params, agent, aux_input, key, config)
+  updates, aux_opt_state = aux_optimizer(config).update(grads, agent.aux_opt_state,
+                                                        aux_params)
+  aux_params = optax.apply_updates(aux_params, updates)
+  return agent.replace(params={**agent.params, **aux_params},
+                       aux_opt_state=aux_opt_state), metrics
 
 
 def update_cycle(agent: AgentState, batches: Batch, key: jax.Array,
