@@ -78,7 +78,8 @@ def test_interrupted_run_resumes_where_it_stopped(tmp_path):
       """)
   proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE,
                           stderr=subprocess.PIPE, text=True,
-                          env=dict(os.environ, JAX_COMPILATION_CACHE_DIR=cache))
+                          env=dict(os.environ, JAX_COMPILATION_CACHE_DIR=cache),
+                          start_new_session=True)
   ckpt = os.path.join(out, "checkpoints")
   deadline = time.time() + 400
   while time.time() < deadline and proc.poll() is None:
@@ -86,7 +87,8 @@ def test_interrupted_run_resumes_where_it_stopped(tmp_path):
       break
     time.sleep(0.5)
   assert proc.poll() is None, proc.communicate()[1][-2000:]
-  proc.send_signal(signal.SIGINT)
+  # As `timeout` and Ctrl-C do: the whole process group (render workers too).
+  os.killpg(proc.pid, signal.SIGTERM)
   stdout, stderr = proc.communicate(timeout=120)
   assert proc.returncode == 0, stderr[-2000:]
   stopped = int(stdout.split()[-1])

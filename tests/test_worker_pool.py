@@ -1,6 +1,8 @@
 """WorkerPool: slices, shared memory, killed/hung/raising workers, clean shutdown."""
 
 import os
+import signal
+import time
 
 import numpy as np
 import pytest
@@ -64,6 +66,22 @@ def test_killed_worker_is_restarted_and_slice_rerendered(tmp_path):
     assert not alive(old[1])
     fill(pool, n)  # and the pool keeps working
     np.testing.assert_array_equal(pool.run(n), expected(n))
+
+
+def test_workers_leave_sigint_and_sigterm_to_the_parent(tmp_path):
+  # Ctrl-C and `timeout` signal the whole process group; the parent decides what
+  # happens (train checkpoints first), so the workers must survive the signal.
+  with make_pool(tmp_path, workers=2)[0] as pool:
+    fill(pool, 8)
+    pool.run(8)
+    old = pool.pids
+    for pid, sig in zip(old, (signal.SIGINT, signal.SIGTERM)):
+      os.kill(pid, sig)
+    time.sleep(0.5)
+    assert all(alive(pid) for pid in old)
+    fill(pool, 8)
+    np.testing.assert_array_equal(pool.run(8), expected(8))
+    assert pool.restarts == 0 and pool.pids == old
 
 
 def test_hung_worker_times_out_and_is_replaced(tmp_path):

@@ -31,6 +31,7 @@ import dataclasses
 import multiprocessing as mp
 import os
 import sys
+import signal
 import time
 import traceback
 from multiprocessing import connection, shared_memory
@@ -87,7 +88,14 @@ def _main_module_hidden():
 
 def _worker_main(conn, factory, factory_args, in_names, in_specs, out_names, out_spec,
                  batch, env):
-  """Entry point of a worker process: build the renderer, then serve calls."""
+  """Entry point of a worker process: build the renderer, then serve calls.
+
+  Workers ignore SIGINT and SIGTERM: Ctrl-C and `timeout` signal the whole process
+  group, and the parent must be the one that decides (e.g. checkpoint, then close
+  the pool). A worker still exits when its parent goes (its pipe reads EOF).
+  """
+  for sig in (signal.SIGINT, signal.SIGTERM):
+    signal.signal(sig, signal.SIG_IGN)
   os.environ.update(env)
   segments = []
   try:
