@@ -1,0 +1,128 @@
+"""JAX ray caster throughput: frames/s of `jax_render.render_batch` at N envs.
+
+For one task (walker by default) with every visual factor varying (one visual
+seed per env) and random body poses (a few hundred distinct dm_control states
+tiled over the batch), it measures, per batch size N: the compile time of the
+jitted batch render and the median run time of `--repeats` calls
+(`block_until_ready`), and reports frames/s. Options choose the image size,
+shadows, reflection and the chunk size (envs per vmapped chunk, bounding memory).
+
+    python -m benchmarks.jax_render --batches 1024,4096,16384 \\
+        --out benchmarks/results/jax_render_h100.jsonl
+
+One JSON line per row (device, backend, sizes, compile and run seconds,
+frames/s) and a Markdown table beside the JSONL file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+
+import numpy as np
+
+
+def _device() -> str:
+  import jax
+  d = jax.devices()[0]
+  return getattr(d, "device_kind", str(d))
+
+
+def inputs(task: str, n: int, states: int = 256, seed: int = 0):
+  """(scene, batched BodyPoses, batched DeviceLook) for n envs of `task`."""
+  import jax
+  import jax.numpy as jnp
+  import mujoco
+  from dmcr_jax.visuals import jax_render_scene as JS
+  from dmcr_jax.visuals import render_model as rmod
+  rm = rmod.build_render_model(task)
+  scene = JS.build_scene(rm)
+  m = rm.model
+  rng = np.random.default_rng(seed)
+  d = mujoco.MjData(m)
+  xpos, xmat, com = [], [], []
+  for _ in range(min(states, n)):
+    d.qpos[:] = m.qpos0 + 0.2 * rng.standard_normal(m.nq)
+    mujoco.mj_fwdPosition(m, d)
+    xpos.append(d.xpos.copy()), xmat.append(d.xmat.copy()), com.append(d.subtree_com.copy())
+  idx = np.arange(n) % len(xpos)
+  bp = JS.BodyPoses(xpos=jnp.asarray(np.stack(xpos)[idx], jnp.float32),
+                    xmat=jnp.asarray(np.stack(xmat)[idx].reshape(n, -1, 3, 3), jnp.float32),
+                    subtree_com=jnp.asarray(np.stack(com)[idx], jnp.float32))
+  looks = rmod.prepare(rm, rm.sample(np.arange(1, n + 1), vary="all"))
+  return scene, bp, JS.device_looks(scene, rm, looks)
+
+
+def bench(task: str, n: int, size: int, shadows: bool, reflection: bool,
+          chunk: int | None, repeats: int) -> dict:
+  import jax
+  from dmcr_jax.visuals import jax_render as JR
+  scene, bp, look = inputs(task, n)
+  fn = jax.jit(lambda bp, look: JR.render_batch(
+      scene, bp, look, height=size, width=size, shadows=shadows, reflection=reflection,
+      chunk=chunk))
+  t0 = time.perf_counter()
+  jax.block_until_ready(fn(bp, look))
+  compile_s = time.perf_counter() - t0
+  times = []
+  for _ in range(repeats):
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(bp, look))
+    times.append(time.perf_counter() - t0)
+  run_s = statistics.median(times)
+  return dict(batch=n, chunk=chunk, shadows=shadows, reflection=reflection,
+              objects=scene.num_objects, compile_s=compile_s, run_s=run_s,
+              frames_per_s=n / run_s)
+
+
+def markdown(rows: list[dict]) -> str:
+  lines = ["| device | task | size | batch | chunk | shadows | reflection | compile s | "
+           "frames/s |", "|---|---|---:|---:|---:|---|---|---:|---:|"]
+  for r in rows:
+    lines.append(f"| {r['device']} | {r['task']} | {r['size']} | {r['batch']:,} | "
+                 f"{r['chunk'] or '–'} | {r['shadows']} | {r['reflection']} | "
+                 f"{r['compile_s']:.1f} | {r['frames_per_s']:,.0f} |")
+  return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> None:
+  argv = sys.argv[1:] if argv is None else argv
+  p = argparse.ArgumentParser(description="JAX ray caster frames/s.")
+  p.add_argument("--task", default="walker-walk")
+  p.add_argument("--size", type=int, default=84)
+  p.add_argument("--batches", default="1024,4096,16384")
+  p.add_argument("--chunk", type=int, default=0, help="envs per chunk (0: all at once)")
+  p.add_argument("--no-shadows", action="store_true")
+  p.add_argument("--no-reflection", action="store_true")
+  p.add_argument("--repeats", type=int, default=3)
+  p.add_argument("--out", default=None)
+  args = p.parse_args(argv)
+  import jax
+  common = dict(bench="jax_render", device=_device(), backend=jax.default_backend(),
+                cpus=os.cpu_count(), host=platform.node(), task=args.task, size=args.size,
+                vary="all")
+  rows = []
+  for n in [int(b) for b in args.batches.split(",")]:
+    chunk = args.chunk if args.chunk and n % args.chunk == 0 else None
+    row = dict(common, **bench(args.task, n, args.size, not args.no_shadows,
+                               not args.no_reflection, chunk, args.repeats))
+    rows.append(row)
+    print(json.dumps(row), flush=True)
+    if args.out:
+      os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
+      with open(args.out, "a") as f:
+        f.write(json.dumps(row) + "\n")
+  table = markdown(rows)
+  print(table)
+  if args.out:
+    with open(os.path.splitext(args.out)[0] + ".md", "w") as f:
+      f.write(f"`python -m benchmarks.jax_render {' '.join(argv)}`\n\n{table}")
+
+
+if __name__ == "__main__":
+  main()
