@@ -8,13 +8,14 @@ short run per algorithm that learns a pixel cue a random policy cannot use.
 import dataclasses
 import functools
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from train import curl, loop, sac, sac_ae
-from train.networks import Decoder, center_crop
+from train.networks import Decoder, StrideTwoConvTranspose, center_crop, encoder_sides
 
 pytestmark = pytest.mark.xdist_group("aux_losses")
 
@@ -100,6 +101,66 @@ def test_decoder_restores_the_observation_shape(side):
   decoder = Decoder(side=side, out_channels=9, channels=4)
   params = decoder.init(jax.random.key(0), jnp.zeros((1, 8)))
   assert decoder.apply(params, jnp.ones((3, 8))).shape == (3, side, side, 9)
+
+
+def test_phased_output_layer_is_the_strided_conv_transpose():
+  # StrideTwoConvTranspose must compute nn.ConvTranspose(stride 2, padding (2,
+  # after)) of the same params: the same outputs, and the same gradients of a
+  # random linear functional Σ weights·y with respect to the params and the input.
+  # (input side, padding after, C_in, C_out): the Decoder's output layer for sides
+  # 84, 100, 64, 33, 17 and 16, then paddings it never uses (past the last input
+  # pixel, and none). The inputs are not square, to tell the axes apart.
+  cases = [(41, 3, 32, 9), (49, 3, 3, 5), (31, 3, 4, 9), (16, 2, 4, 3), (8, 2, 1, 1),
+           (7, 3, 2, 4), (6, 5, 3, 2), (5, 0, 2, 3)]
+  rng = np.random.default_rng(0)
+  normal = lambda *shape: jnp.asarray(rng.normal(size=shape), jnp.float32)
+  inputs = [({"params": {"kernel": normal(3, 3, c_in, c_out), "bias": normal(c_out)}},
+             normal(2, in_side, in_side + 1, c_in),
+             normal(2, 2 * in_side - 1 + after, 2 * in_side + 1 + after, c_out))
+            for in_side, after, c_in, c_out in cases]
+
+  @jax.jit
+  def outputs_and_grads(inputs):  # one compilation for all cases
+    results = []
+    for (_, after, _, c_out), (params, x, weights) in zip(cases, inputs):
+      for layer in (StrideTwoConvTranspose(c_out, after=after),
+                    nn.ConvTranspose(c_out, (3, 3), strides=(2, 2),
+                                     padding=((2, after), (2, after)))):
+        y, vjp = jax.vjp(layer.apply, params, x)
+        results.append((y, *vjp(weights)))
+    return results
+
+  results = outputs_and_grads(inputs)
+  for case, (params, x, weights), got, expect in zip(cases, inputs, results[::2], results[1::2]):
+    assert got[0].shape == expect[0].shape == weights.shape, case
+    assert got[0].dtype == expect[0].dtype == jnp.float32, case
+    for g, e in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(expect)):
+      np.testing.assert_allclose(g, e, rtol=1e-5, atol=1e-5 * np.abs(e).max(),
+                                 err_msg=str(case))
+    # The compute dtype is respected; the parameters stay float32.
+    half = StrideTwoConvTranspose(case[3], after=case[1], dtype="bfloat16")
+    assert jax.eval_shape(half.apply, params, x).dtype == jnp.bfloat16, case
+
+
+def test_decoder_parameters_keep_their_names_shapes_and_initialisers():
+  # Checkpoints from before the phased output layer must load unchanged.
+  side, s = 84, encoder_sides(84)[-1]
+  decoder = Decoder(side=side, out_channels=9, channels=4)
+  shapes = jax.eval_shape(decoder.init, jax.random.key(0), jnp.zeros((1, 8)))
+  conv = {"kernel": (3, 3, 4, 4), "bias": (4,)}
+  assert jax.tree_util.tree_map(lambda a: (a.shape, a.dtype), shapes) == jax.tree_util.tree_map(
+      lambda shape: (shape, jnp.float32), {"params": {
+          "fc": {"kernel": (8, 4 * s * s), "bias": (4 * s * s,)},
+          "deconv0": conv, "deconv1": conv, "deconv2": conv,
+          "out": {"kernel": (3, 3, 4, 9), "bias": (9,)}}}, is_leaf=lambda t: isinstance(t, tuple))
+  # The same key initialises the phased layer as it did the transposed convolution.
+  x = jnp.zeros((1, 5, 4, 2))
+  new = StrideTwoConvTranspose(3, after=3, bias_init=nn.initializers.ones)
+  old = nn.ConvTranspose(3, (3, 3), strides=(2, 2), padding=((2, 3), (2, 3)),
+                         bias_init=nn.initializers.ones)
+  got, expect = jax.jit(lambda key: (new.init(key, x), old.init(key, x)))(jax.random.key(4))
+  assert jax.tree_util.tree_structure(got) == jax.tree_util.tree_structure(expect)
+  assert jax.tree_util.tree_all(jax.tree_util.tree_map(np.array_equal, got, expect))
 
 
 @functools.lru_cache(maxsize=None)

@@ -25,6 +25,7 @@ import math
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 _DENSE_INIT = nn.initializers.orthogonal(1.0)
 _CONV_INIT = nn.initializers.orthogonal(math.sqrt(2.0))  # ReLU gain
@@ -114,6 +115,16 @@ class Decoder(nn.Module):
   last layer's padding plays the part of PyTorch's ``output_padding``). No
   output activation: it regresses SAC+AE's pre-processed pixels in [−.5, .5).
 
+  The stride-2 output layer is `StrideTwoConvTranspose`: the same function, with
+  the same parameters (``out/kernel`` (3, 3, channels, out_channels), ``out/bias``)
+  and initialisers, as ``nn.ConvTranspose(out_channels, (3, 3), strides=(2, 2),
+  padding=((2, after), (2, after)))``, but computed in phases (sub-pixel): one
+  2×2 stride-1 convolution giving each of the four output-pixel parities, then
+  interleaved. XLA computes the transposed convolution by convolving the
+  zero-dilated input, which it materialises, and on GPUs that one layer cost more
+  than the whole encoder (forward + backward, in a profile on the H100); the
+  phases never dilate.
+
   Attributes:
     side: the observation's side (H = W) to reconstruct.
     out_channels: the observation's channels (3·frame stack).
@@ -143,10 +154,97 @@ class Decoder(nn.Module):
     # pixels, the 3×3 kernel removes 2, so `side` needs side − 2·sides[0] + 3 of
     # padding: 2 before (a full transposed convolution) and the rest after.
     after = self.side - 2 * sides[0] + 1
-    x = nn.ConvTranspose(self.out_channels, (3, 3), strides=(2, 2),
-                         padding=((2, after), (2, after)), kernel_init=_DENSE_INIT,
-                         dtype=self.dtype, name="out")(x)
+    x = StrideTwoConvTranspose(self.out_channels, after=after, kernel_init=_DENSE_INIT,
+                               dtype=self.dtype, name="out")(x)
     return x.astype(jnp.float32)
+
+
+# Which tap of the 3-tap kernel each of the two taps of a phase's 2-tap kernel
+# is, per output parity; 3 indexes a zero tap. See `StrideTwoConvTranspose`.
+_PHASE_TAPS = np.array([[0, 2],   # even outputs: x[p − 1]·K[0] + x[p]·K[2]
+                        [3, 1]])  # odd outputs:  x[p]·K[1]
+
+
+def phase_kernel(kernel: jax.Array) -> jax.Array:
+  """The 2×2 kernel whose output channels are the four phases of a 3×3 one.
+
+  Args:
+    kernel: (3, 3, C_in, C_out), HWIO, of a stride-2 transposed convolution
+      with padding 2 before (see `StrideTwoConvTranspose`).
+
+  Returns:
+    (2, 2, C_in, 4·C_out): channel (2·a + b)·C_out + c is output channel c of
+    phase (row parity a, column parity b); its taps are those of `_PHASE_TAPS`
+    (zeros where the phase has only one tap per axis).
+  """
+  c_in, c_out = kernel.shape[2:]
+  padded = jnp.pad(kernel, ((0, 1), (0, 1), (0, 0), (0, 0)))  # tap 3 is zero
+  rows = _PHASE_TAPS[:, :, None, None]  # (a, u, 1, 1)
+  cols = _PHASE_TAPS[None, None, :, :]  # (1, 1, b, v)
+  taps = padded[rows, cols]  # (a, u, b, v, C_in, C_out)
+  return taps.transpose(1, 3, 4, 0, 2, 5).reshape(2, 2, c_in, 4 * c_out)
+
+
+class StrideTwoConvTranspose(nn.Module):
+  """A 3×3 stride-2 transposed convolution, padded (2, after), computed in phases.
+
+  The same function of the same parameters, with the same names, shapes and
+  initialisers ({"kernel": (3, 3, C_in, features), "bias": (features,)}), as
+  ``nn.ConvTranspose(features, (3, 3), strides=(2, 2), padding=((2, after),
+  (2, after)))``, i.e. ``lax.conv_general_dilated`` of the input dilated by 2
+  (zeros between pixels) with the kernel unflipped, but without the dilation.
+
+  Per axis, with xd the dilated input (xd[2i] = x[i], zero at odd positions) and
+  x = 0 out of range: y[o] = Σ_k xd[o + k − 2]·K[k], so y[2p] = x[p − 1]·K[0] +
+  x[p]·K[2] and y[2p + 1] = x[p]·K[1]. Padding x by one on each side, the even
+  outputs are a 2-tap VALID correlation with [K[0], K[2]] and the odd ones a
+  2-tap correlation with [0, K[1]], s + 1 outputs each for an input side s. In
+  2-D the four (row parity, column parity) phases are one stride-1 convolution
+  with a 2×2 kernel of 4·features channels (`phase_kernel`); interleaving them
+  (depth to space) gives 2s + 2 rows and columns, cropped (or, for after > 3,
+  zero-extended) to the transposed convolution's 2s − 1 + after.
+
+  Attributes:
+    features: output channels.
+    after: padding after each spatial axis (the Decoder's: 2 for odd sides, 3
+      for even ones); the output side is 2·input side − 1 + after.
+    dtype: compute dtype (None: promoted from the input and the parameters);
+      the parameters are float32.
+    precision: as `lax.conv_general_dilated`'s.
+    kernel_init: initialiser of the (3, 3, C_in, features) kernel.
+    bias_init: initialiser of the bias.
+  """
+  features: int
+  after: int
+  dtype: str | None = None
+  precision: jax.lax.PrecisionLike = None
+  kernel_init: nn.initializers.Initializer = nn.initializers.lecun_normal()
+  bias_init: nn.initializers.Initializer = nn.initializers.zeros_init()
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:
+    """Maps (B, H, W, C_in) to (B, 2H − 1 + after, 2W − 1 + after, features)."""
+    if x.ndim != 4:
+      raise ValueError(f"expected (B, H, W, C) inputs, got shape {x.shape}")
+    kernel = self.param("kernel", self.kernel_init, (3, 3, x.shape[-1], self.features),
+                        jnp.float32)
+    bias = self.param("bias", self.bias_init, (self.features,), jnp.float32)
+    x, kernel, bias = nn.dtypes.promote_dtype(x, kernel, bias, dtype=self.dtype)
+    batch, height, width, _ = x.shape
+    out_h, out_w = 2 * height - 1 + self.after, 2 * width - 1 + self.after
+    if out_h < 1 or out_w < 1:
+      raise ValueError(f"padding after {self.after} leaves no output for {x.shape}")
+    y = jax.lax.conv_general_dilated(x, phase_kernel(kernel), (1, 1), ((1, 1), (1, 1)),
+                                     dimension_numbers=("NHWC", "HWIO", "NHWC"),
+                                     precision=self.precision)
+    # (B, H + 1, W + 1, [a, b, c]) → (B, [H + 1, a], [W + 1, b], c): y[2p + a, 2q + b].
+    y = y.reshape(batch, height + 1, width + 1, 2, 2, self.features)
+    y = y.transpose(0, 1, 3, 2, 4, 5).reshape(batch, 2 * height + 2, 2 * width + 2,
+                                              self.features)
+    y = y[:, :out_h, :out_w]
+    if out_h > y.shape[1] or out_w > y.shape[2]:  # padding past the last input pixel
+      y = jnp.pad(y, ((0, 0), (0, out_h - y.shape[1]), (0, out_w - y.shape[2]), (0, 0)))
+    return y + bias
 
 
 class MLP(nn.Module):
