@@ -1,17 +1,31 @@
-"""JAX ray caster throughput: frames/s of `jax_render.render_batch` at N envs.
+"""JAX ray caster throughput: frames/s of `jax_render.render_batch`, or agent-steps/s of
+the whole JAX pixel env (`--mode env`), at N envs.
 
-For one task (walker by default) with every visual factor varying (one visual
-seed per env) and random body poses (a few hundred distinct dm_control states
-tiled over the batch), it measures, per batch size N: the compile time of the
-jitted batch render and the median run time of `--repeats` calls
-(`block_until_ready`), and reports frames/s. Options choose the image size,
-shadows, reflection and the chunk size (envs per vmapped chunk, bounding memory).
+`--mode render` (default): for one task (walker by default) with every visual
+factor varying (one visual seed per env) and random body poses (a few hundred
+distinct dm_control states tiled over the batch), it measures, per batch size N:
+the compile time of the jitted batch render and the median run time of
+`--repeats` calls (`block_until_ready`), and reports frames/s. Options choose the
+image size, shadows, reflection and the chunk size (envs per vmapped chunk,
+bounding memory).
+
+`--mode env` (end to end): `dmcr_jax.make(task, N, renderer="jax")` with visual
+seeds 1 … N, vary="all", the task's frame skip (walker-walk: 2) and stacks of 3,
+stepped with uniform random actions. Per N it reports the compile time (reset and
+first step) and agent-steps/s (N pixel observations, rewards and auto-resets per
+agent step) two ways: `env.step` in a host loop (one jitted call per step, the
+observations left on the device, `info` fetched to the host) and the pure
+`PixelEnv.step` scanned `--scan-steps` times in one jitted call (how
+`train.device_loop` drives it: no host work between steps), each the median of
+`--repeats` timed runs of `--steps` (resp. `--scan-steps`) steps.
 
     python -m benchmarks.jax_render --batches 1024,4096,16384 \\
         --out benchmarks/results/jax_render_h100.jsonl
+    python -m benchmarks.jax_render --mode env --batches 1024,4096,16384 --chunk 1024 \\
+        --out benchmarks/results/jax_env_h100.jsonl
 
 One JSON line per row (device, backend, sizes, compile and run seconds,
-frames/s) and a Markdown table beside the JSONL file.
+frames/s or agent-steps/s) and a Markdown table beside the JSONL file.
 """
 
 from __future__ import annotations
@@ -80,6 +94,77 @@ def bench(task: str, n: int, size: int, shadows: bool, reflection: bool,
               frames_per_s=n / run_s)
 
 
+def bench_env(task: str, n: int, size: int, shadows: bool, reflection: bool,
+              chunk: int | None, repeats: int, steps: int, scan_steps: int) -> dict:
+  """Agent-steps/s of `make(task, n, renderer="jax")` (module doc, `--mode env`)."""
+  import jax
+  import jax.numpy as jnp
+  import dmcr_jax
+  from dmcr_jax import jax_env
+  env = dmcr_jax.make(task, num_envs=n, visual_seeds=np.arange(1, n + 1), vary="all",
+                      image_size=size, renderer="jax", shadows=shadows,
+                      reflection=reflection, render_chunk=chunk, obs_on_device=True)
+  low, high = env.single_action_space.low, env.single_action_space.high
+  rng = np.random.default_rng(0)
+  actions = [rng.uniform(low, high, (n, len(low))).astype(np.float32) for _ in range(8)]
+  t0 = time.perf_counter()
+  env.reset(seed=0)
+  jax.block_until_ready(env.step(actions[0])[0])
+  compile_s = time.perf_counter() - t0
+
+  step_times = []
+  for _ in range(repeats):
+    t0 = time.perf_counter()
+    for i in range(steps):
+      obs = env.step(actions[i % len(actions)])[0]
+    jax.block_until_ready(obs)
+    step_times.append(time.perf_counter() - t0)
+
+  penv = env.functional
+  lo, hi = jnp.asarray(low), jnp.asarray(high)
+
+  def scanned(penv, state, key):
+    def body(carry, _):
+      state, key = carry
+      key, k = jax.random.split(key)
+      a = jax.random.uniform(k, (n, len(low)), minval=lo, maxval=hi)
+      state, reward, _ = penv.step(state, a)
+      return (state, key), reward.sum()
+    (state, _), rewards = jax.lax.scan(body, (state, key), None, length=scan_steps)
+    return state, rewards
+
+  donate = () if jax.default_backend() == "cpu" else (1,)
+  run = jax.jit(scanned, donate_argnums=donate)
+  state = jax_env.reset(penv, jax.random.key(1))
+  t0 = time.perf_counter()
+  state, _ = jax.block_until_ready(run(penv, state, jax.random.key(2)))
+  scan_compile_s = time.perf_counter() - t0
+  scan_times = []
+  for r in range(repeats):
+    t0 = time.perf_counter()
+    state, _ = jax.block_until_ready(run(penv, state, jax.random.key(3 + r)))
+    scan_times.append(time.perf_counter() - t0)
+  step_s = statistics.median(step_times) / steps
+  scan_s = statistics.median(scan_times) / scan_steps
+  return dict(batch=n, chunk=penv.render_chunk, shadows=shadows, reflection=reflection,
+              frame_skip=env.frame_skip, frame_stack=env.frame_stack,
+              objects=penv.scene.num_objects, compile_s=compile_s,
+              scan_compile_s=scan_compile_s, step_s=step_s, scan_step_s=scan_s,
+              agent_steps_per_s=n / step_s, scan_agent_steps_per_s=n / scan_s)
+
+
+def markdown_env(rows: list[dict]) -> str:
+  lines = ["| device | task | size | batch | chunk | frame skip | compile s | "
+           "env.step agent-steps/s | scanned agent-steps/s |",
+           "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+  for r in rows:
+    lines.append(f"| {r['device']} | {r['task']} | {r['size']} | {r['batch']:,} | "
+                 f"{r['chunk'] or '–'} | {r['frame_skip']} | "
+                 f"{r['compile_s'] + r['scan_compile_s']:.1f} | "
+                 f"{r['agent_steps_per_s']:,.0f} | {r['scan_agent_steps_per_s']:,.0f} |")
+  return "\n".join(lines) + "\n"
+
+
 def markdown(rows: list[dict]) -> str:
   lines = ["| device | task | size | batch | chunk | shadows | reflection | compile s | "
            "frames/s |", "|---|---|---:|---:|---:|---|---|---:|---:|"]
@@ -92,7 +177,9 @@ def markdown(rows: list[dict]) -> str:
 
 def main(argv=None) -> None:
   argv = sys.argv[1:] if argv is None else argv
-  p = argparse.ArgumentParser(description="JAX ray caster frames/s.")
+  p = argparse.ArgumentParser(description="JAX ray caster frames/s, or the JAX pixel "
+                                          "env's agent-steps/s (--mode env).")
+  p.add_argument("--mode", default="render", choices=("render", "env"))
   p.add_argument("--task", default="walker-walk")
   p.add_argument("--size", type=int, default=84)
   p.add_argument("--batches", default="1024,4096,16384")
@@ -100,24 +187,32 @@ def main(argv=None) -> None:
   p.add_argument("--no-shadows", action="store_true")
   p.add_argument("--no-reflection", action="store_true")
   p.add_argument("--repeats", type=int, default=3)
+  p.add_argument("--steps", type=int, default=20, help="--mode env: env.step calls per repeat")
+  p.add_argument("--scan-steps", type=int, default=50,
+                 help="--mode env: scanned steps per jitted call")
   p.add_argument("--out", default=None)
   args = p.parse_args(argv)
   import jax
-  common = dict(bench="jax_render", device=_device(), backend=jax.default_backend(),
-                cpus=os.cpu_count(), host=platform.node(), task=args.task, size=args.size,
-                vary="all")
+  env_mode = args.mode == "env"
+  common = dict(bench="jax_env" if env_mode else "jax_render", device=_device(),
+                backend=jax.default_backend(), cpus=os.cpu_count(), host=platform.node(),
+                task=args.task, size=args.size, vary="all")
   rows = []
   for n in [int(b) for b in args.batches.split(",")]:
-    chunk = args.chunk if args.chunk and n % args.chunk == 0 else None
-    row = dict(common, **bench(args.task, n, args.size, not args.no_shadows,
-                               not args.no_reflection, chunk, args.repeats))
+    flags = (not args.no_shadows, not args.no_reflection)
+    if env_mode:
+      row = dict(common, **bench_env(args.task, n, args.size, *flags, args.chunk or None,
+                                     args.repeats, args.steps, args.scan_steps))
+    else:
+      chunk = args.chunk if args.chunk and n % args.chunk == 0 else None
+      row = dict(common, **bench(args.task, n, args.size, *flags, chunk, args.repeats))
     rows.append(row)
     print(json.dumps(row), flush=True)
     if args.out:
       os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
       with open(args.out, "a") as f:
         f.write(json.dumps(row) + "\n")
-  table = markdown(rows)
+  table = markdown_env(rows) if env_mode else markdown(rows)
   print(table)
   if args.out:
     with open(os.path.splitext(args.out)[0] + ".md", "w") as f:

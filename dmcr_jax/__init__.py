@@ -3,7 +3,8 @@
 Physics is dm_control's own suite models stepped by vmapped MJX
 (`dmcr_jax.models`); visual seeds become batched render parameters
 (`dmcr_jax.visuals`); `make` builds N pixel envs as one gymnasium
-`VectorEnv` (`dmcr_jax.env`), and `GymEnv` / `DmEnv` (registered with gymnasium
+`VectorEnv` (`dmcr_jax.env`; `renderer="jax"` renders with the JAX ray caster on
+the device, `dmcr_jax.jax_env`), and `GymEnv` / `DmEnv` (registered with gymnasium
 as `dmcr/<task>-v0`) are single envs for existing pixel-RL code. `ALL_TASKS`
 lists the 22 DMCR tasks; `levels(n)` and `TEST_SEEDS` are the few-shot training
 and held-out visual-seed ranges.
@@ -21,11 +22,12 @@ if "MUJOCO_GL" not in _os.environ and not _os.environ.get("DISPLAY"):
 
 from dmcr_jax.models import ALL_TASKS, DOMAIN_TASKS, load
 from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, SeedRange, levels
-from dmcr_jax.env import PixelVectorEnv, make
+from dmcr_jax.env import JaxPixelVectorEnv, PixelVectorEnv, make
 from dmcr_jax.adapters import DmEnv, GymEnv, register_envs
 
 register_envs()
 
 __version__ = "0.1.0"
-__all__ = ["ALL_TASKS", "DOMAIN_TASKS", "DmEnv", "GymEnv", "PixelVectorEnv", "SeedRange",
-           "TEST_SEEDS", "TRAIN_SEEDS", "levels", "load", "make", "__version__"]
+__all__ = ["ALL_TASKS", "DOMAIN_TASKS", "DmEnv", "GymEnv", "JaxPixelVectorEnv",
+           "PixelVectorEnv", "SeedRange", "TEST_SEEDS", "TRAIN_SEEDS", "levels", "load",
+           "make", "__version__"]

@@ -1,6 +1,17 @@
 """`dmcr_jax.make`: N DMCR envs with pixels, as one gymnasium `VectorEnv`.
 
-Per agent step, for the whole batch:
+Two renderers, one interface (`renderer=`): "pool" (default, `PixelVectorEnv`)
+renders MuJoCo's own pixels in CPU worker processes; "jax" (`JaxPixelVectorEnv`)
+runs physics, the JAX ray caster (`visuals.jax_render`: close to MuJoCo's pixels,
+not equal) and the frame stacks as one jitted call on the device
+(`dmcr_jax.jax_env`, whose pure functions a training loop can scan). Both share
+the arguments, spaces, visual seeds, auto-reset, observations and info described
+below (`_PixelEnvBase`); `workers`, `quality`, `gl` and `copy_obs` are the pool's,
+`shadows`, `reflection`, `render_chunk` and `obs_on_device` the JAX renderer's,
+and either refuses the other's. With "jax", a `SeedRange` may hold at most
+`jax_env.MAX_RANGE_LOOKS` seeds (their looks are precomputed on the device).
+
+Per agent step of the pool env, for the whole batch:
 1. physics — one jitted call (`physics_env.step`): frame skip, rewards summed,
    NEXT_STEP auto-reset, next visual seeds (device);
 2. transfer — the few arrays the host needs (qpos, task variables, rewards,
@@ -12,7 +23,8 @@ Per agent step, for the whole batch:
 4. copy — the stacked observations are copied out of shared memory (skipped
    with `copy_obs=False`: observations are then views of the pool's shared
    memory, valid until the step after next — enough to store a transition).
-`env.timings` accumulates the seconds spent in each part.
+`env.timings` accumulates the seconds spent in each part (the JAX env: "step",
+the one jitted call, and "transfer", the observations and info to the host).
 
 Auto-reset follows gymnasium's NEXT_STEP mode: the step that ends an episode
 returns its last observation, reward and `truncated=True`; the env's next step
@@ -46,7 +58,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
-from dmcr_jax import models, physics_env
+from dmcr_jax import jax_env, models, physics_env
 from dmcr_jax.checks import positive_int
 from dmcr_jax.visuals import render_model as rmod
 from dmcr_jax.visuals.factors import active_factors
@@ -104,21 +116,25 @@ def _physics_fns(task, num_envs: int, frame_skip: int, seed_range: SeedRange | N
   return init, step
 
 
-class PixelVectorEnv(gymnasium.vector.VectorEnv):
-  """N DMCR envs with pixel observations (a gymnasium `VectorEnv`).
+RENDERERS = ("pool", "jax")
+"""What `make(renderer=...)` accepts: the CPU render pool (MuJoCo's own pixels) or
+the JAX ray caster (physics, rendering and stacking in one jitted call)."""
+_POOL_ONLY = ("workers", "quality", "gl", "copy_obs")
+_JAX_ONLY = ("shadows", "reflection", "render_chunk", "obs_on_device")
 
-  Build it with `dmcr_jax.make` (same arguments). Use as a context manager or
-  call `close()` to stop the render workers.
-  """
+
+class _PixelEnvBase(gymnasium.vector.VectorEnv):
+  """What both pixel envs share: arguments, spaces, visual seeds, the gymnasium
+  reset/step checks, `set_visuals`, `set_state`, info and timings. A subclass
+  renders: `_use_seeds` (the seeds changed), `_reset(key)` and `_start_from(es)`
+  (fresh stacks; both set `_es` and `_obs` and return (obs, info)) and `step`."""
 
   metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": ["rgb_array"]}
+  timing_parts: tuple[str, ...] = ()
 
-  def __init__(self, task: str, num_envs: int = 1, visual_seeds: Any = 0,
-               vary: str | Sequence[str] | None = "all", frame_skip: int | None = None,
-               frame_stack: int = 3, image_size: int | tuple[int, int] = 84,
-               camera: int | str = 0, seed: int = 0, *, workers: int | None = None,
-               quality: str = "exact", gl: str | None = None, copy_obs: bool = True,
-               solver_iterations: int | None = None, ls_iterations: int | None = None):
+  def __init__(self, task: str, num_envs: int, visual_seeds: Any, vary, frame_skip,
+               frame_stack: int, image_size, camera, seed: int,
+               solver_iterations: int | None, ls_iterations: int | None):
     domain, _ = models.split_name(task)
     n = positive_int("num_envs", num_envs)
     self.frame_skip = positive_int(
@@ -129,8 +145,8 @@ class PixelVectorEnv(gymnasium.vector.VectorEnv):
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
       raise ValueError(f"seed must be an int, got {seed!r}")
     active_factors(domain, vary)  # validates `vary`, listing the factors
-    self.task_name, self.domain, self.vary = task, domain, vary
-    self.seeds = _seed_source(visual_seeds, n)
+    self.task_name, self.domain, self.vary, self.camera = task, domain, vary, camera
+    self.seeds = self._check_seeds(_seed_source(visual_seeds, n))
     self.task = models.load(task, solver_iterations, ls_iterations)
     self.num_envs = n
     self.single_action_space = gymnasium.spaces.Box(
@@ -140,20 +156,23 @@ class PixelVectorEnv(gymnasium.vector.VectorEnv):
     self.action_space = batch_space(self.single_action_space, n)
     self.observation_space = batch_space(self.single_observation_space, n)
     self.render_mode = "rgb_array"
-    self.copy_obs = bool(copy_obs)
     self.episode_length = -(-self.task.time_limit // self.frame_skip)
-    self._pool = RenderPool(task, max_batch=n, height=self.height, width=self.width,
-                            camera=camera, workers=min(n, workers or default_workers()),
-                            quality=quality, gl=gl, frame_stack=self.frame_stack)
-    self._use_seeds()
     self._key = jax.random.key(int(seed))
     self._es = None
-    self._looks = None
-    self._look_seeds = None
     self._obs = None
-    self._needs_reset = np.zeros(n, bool)
-    self.timings = dict.fromkeys(TIMING_PARTS, 0.0)
-    self.timed_steps = 0
+    self.reset_timings()
+
+  def _check_seeds(self, seeds):
+    """Hook: a renderer's own limits on the seed source (returned unchanged)."""
+    return seeds
+
+  def _use_physics(self) -> None:
+    """Points `_init`/`_step` at the current seed source. Fixed seeds are a traced
+    argument (one compilation serves any of them); a `SeedRange` is static."""
+    fixed = not isinstance(self.seeds, SeedRange)
+    self._init, self._step = _physics_fns(self.task, self.num_envs, self.frame_skip,
+                                          None if fixed else self.seeds)
+    self._seed_arg = jnp.asarray(self.seeds, jnp.int32) if fixed else None
 
   def set_visuals(self, visual_seeds: Any, vary: str | Sequence[str] | None = None) -> None:
     """Changes the looks: new visual seeds (and optionally `vary`) for every env.
@@ -171,10 +190,10 @@ class PixelVectorEnv(gymnasium.vector.VectorEnv):
     """
     vary = self.vary if vary is None else vary
     active_factors(self.domain, vary)
-    seeds = _seed_source(visual_seeds, self.num_envs)
+    seeds = self._check_seeds(_seed_source(visual_seeds, self.num_envs))
     self.seeds, self.vary = seeds, vary
     self._use_seeds()
-    self._es = self._obs = self._looks = self._look_seeds = None
+    self._es = self._obs = None
 
   def set_state(self, state: physics_env.EnvState):
     """Replaces every env's state (e.g. to render one physical state under many
@@ -214,13 +233,98 @@ class PixelVectorEnv(gymnasium.vector.VectorEnv):
       (observations, info) for all N envs.
     """
     if options:
-      raise ValueError(f"PixelVectorEnv.reset takes no options, got {sorted(options)}")
+      raise ValueError(f"{type(self).__name__}.reset takes no options, got {sorted(options)}")
     if seed is not None:
       if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
         raise ValueError(f"seed must be an int or None, got {seed!r}")
       self._key = jax.random.key(int(seed))
     self._key, key = jax.random.split(self._key)
-    return self._start_from(self._init(key, self._seed_arg))
+    return self._reset(key)
+
+  def render(self) -> np.ndarray | None:
+    """The latest frame of every env, uint8 (N, H, W, 3) (None before reset)."""
+    return None if self._obs is None else np.array(self._obs[..., -3:])
+
+  def close(self, **kwargs) -> None:
+    """Releases the renderer (idempotent)."""
+
+  def __enter__(self):
+    return self
+
+  def __exit__(self, *exc):
+    self.close()
+
+  @property
+  def state(self) -> physics_env.EnvState | None:
+    """The envs' current `EnvState` on the device (None before reset)."""
+    return self._es
+
+  def reset_timings(self) -> None:
+    self.timings = dict.fromkeys(self.timing_parts, 0.0)
+    self.timed_steps = 0
+
+  def __repr__(self):
+    seeds = (self.seeds if isinstance(self.seeds, SeedRange)
+             else f"fixed {np.unique(self.seeds)[:4].tolist()}…")
+    return (f"{type(self).__name__}({self.task_name!r}, num_envs={self.num_envs}, "
+            f"visual_seeds={seeds}, vary={self.vary!r}, frame_skip={self.frame_skip}, "
+            f"frame_stack={self.frame_stack}, image={self.height}x{self.width})")
+
+  # Internals ------------------------------------------------------------------
+
+  def _check_actions(self, actions) -> np.ndarray:
+    a = np.asarray(actions, dtype=np.float32)
+    want = (self.num_envs, self.task.action_size)
+    if a.shape != want:
+      raise ValueError(f"actions must have shape {want} (num_envs, action_size), "
+                       f"got {np.shape(actions)}")
+    bad = ~np.isfinite(a).all(axis=1)
+    if bad.any():
+      raise ValueError(f"actions must be finite; envs {np.flatnonzero(bad)[:8].tolist()} "
+                       "have NaN or inf entries")
+    return a
+
+  def _host_fields(self, es: physics_env.EnvState, reward, truncated) -> dict:
+    """What the host reads of a step besides pixels (fetched with them)."""
+    out = {"state": es.task.obs, "visual_seed": es.visual_seed, "episode": es.episode,
+           "episode_step": es.episode_step, "episode_return": es.episode_return}
+    if reward is not None:
+      out["reward"], out["truncated"] = reward, truncated
+    return out
+
+  def _info(self, host: dict) -> dict:
+    return {k: host[k] for k in ("state", "visual_seed", "episode", "episode_step",
+                                 "episode_return")}
+
+
+class PixelVectorEnv(_PixelEnvBase):
+  """N DMCR envs with pixel observations from the CPU render pool (a gymnasium
+  `VectorEnv`).
+
+  Build it with `dmcr_jax.make` (same arguments). Use as a context manager or
+  call `close()` to stop the render workers.
+  """
+
+  timing_parts = TIMING_PARTS
+
+  def __init__(self, task: str, num_envs: int = 1, visual_seeds: Any = 0,
+               vary: str | Sequence[str] | None = "all", frame_skip: int | None = None,
+               frame_stack: int = 3, image_size: int | tuple[int, int] = 84,
+               camera: int | str = 0, seed: int = 0, *, workers: int | None = None,
+               quality: str = "exact", gl: str | None = None, copy_obs: bool = True,
+               solver_iterations: int | None = None, ls_iterations: int | None = None):
+    self._pool = None
+    super().__init__(task, num_envs, visual_seeds, vary, frame_skip, frame_stack,
+                     image_size, camera, seed, solver_iterations, ls_iterations)
+    n = self.num_envs
+    self.copy_obs = bool(copy_obs)
+    self._pool = RenderPool(task, max_batch=n, height=self.height, width=self.width,
+                            camera=camera, workers=min(n, workers or default_workers()),
+                            quality=quality, gl=gl, frame_stack=self.frame_stack)
+    self._use_seeds()
+    self._looks = None
+    self._look_seeds = None
+    self._needs_reset = np.zeros(n, bool)
 
   def step(self, actions, *, while_rendering: Callable[[], Any] | None = None):
     """One agent step of every env (NEXT_STEP auto-reset, see the module docstring).
@@ -271,33 +375,20 @@ class PixelVectorEnv(gymnasium.vector.VectorEnv):
       self._pool.close()
       self._pool = None
 
-  def __enter__(self):
-    return self
-
-  def __exit__(self, *exc):
-    self.close()
-
   def __del__(self):
     if getattr(self, "_pool", None) is not None:
       self.close()
 
-  @property
-  def state(self) -> physics_env.EnvState | None:
-    """The envs' current `EnvState` on the device (None before reset)."""
-    return self._es
-
-  def reset_timings(self) -> None:
-    self.timings = dict.fromkeys(TIMING_PARTS, 0.0)
-    self.timed_steps = 0
-
-  def __repr__(self):
-    seeds = (self.seeds if isinstance(self.seeds, SeedRange)
-             else f"fixed {np.unique(self.seeds)[:4].tolist()}…")
-    return (f"PixelVectorEnv({self.task_name!r}, num_envs={self.num_envs}, "
-            f"visual_seeds={seeds}, vary={self.vary!r}, frame_skip={self.frame_skip}, "
-            f"frame_stack={self.frame_stack}, image={self.height}x{self.width})")
-
   # Internals ------------------------------------------------------------------
+
+  def set_visuals(self, visual_seeds: Any, vary: str | Sequence[str] | None = None) -> None:
+    super().set_visuals(visual_seeds, vary)
+    self._looks = self._look_seeds = None
+
+  set_visuals.__doc__ = _PixelEnvBase.set_visuals.__doc__
+
+  def _reset(self, key):
+    return self._start_from(self._init(key, self._seed_arg))
 
   def _start_from(self, es: physics_env.EnvState):
     """Makes `es` the current state and renders fresh frame stacks from it."""
@@ -308,32 +399,12 @@ class PixelVectorEnv(gymnasium.vector.VectorEnv):
     return self._obs, self._info(host)
 
   def _use_seeds(self) -> None:
-    """Points `_init`/`_step` at the current seed source. Fixed seeds are a traced
-    argument (one compilation serves any of them); a `SeedRange` is static."""
-    fixed = not isinstance(self.seeds, SeedRange)
-    self._init, self._step = _physics_fns(self.task, self.num_envs, self.frame_skip,
-                                          None if fixed else self.seeds)
-    self._seed_arg = jnp.asarray(self.seeds, jnp.int32) if fixed else None
-
-  def _check_actions(self, actions) -> np.ndarray:
-    a = np.asarray(actions, dtype=np.float32)
-    want = (self.num_envs, self.task.action_size)
-    if a.shape != want:
-      raise ValueError(f"actions must have shape {want} (num_envs, action_size), "
-                       f"got {np.shape(actions)}")
-    bad = ~np.isfinite(a).all(axis=1)
-    if bad.any():
-      raise ValueError(f"actions must be finite; envs {np.flatnonzero(bad)[:8].tolist()} "
-                       "have NaN or inf entries")
-    return a
+    self._use_physics()
 
   def _fetch(self, es: physics_env.EnvState, reward, truncated) -> dict:
-    s = es.task
-    out = {"qpos": s.data.qpos, "variables": {k: s.info[k] for k in self.task.model_variable_ids},
-           "state": s.obs, "visual_seed": es.visual_seed, "episode": es.episode,
-           "episode_step": es.episode_step, "episode_return": es.episode_return}
-    if reward is not None:
-      out["reward"], out["truncated"] = reward, truncated
+    out = self._host_fields(es, reward, truncated)
+    out["qpos"] = es.task.data.qpos
+    out["variables"] = {k: es.task.info[k] for k in self.task.model_variable_ids}
     return jax.device_get(out)
 
   def _update_looks(self, seeds: np.ndarray) -> None:
@@ -362,22 +433,128 @@ class PixelVectorEnv(gymnasium.vector.VectorEnv):
     return self._pool.render(host["qpos"], self._looks,
                              host["variables"], restart=restart, copy_out=False)
 
-  def _info(self, host: dict) -> dict:
-    return {k: host[k] for k in ("state", "visual_seed", "episode", "episode_step",
-                                 "episode_return")}
+
+class JaxPixelVectorEnv(_PixelEnvBase):
+  """N DMCR envs whose physics, frames and frame stacks are one jitted call on the
+  device (`dmcr_jax.jax_env`): the JAX ray caster replaces the render pool.
+
+  Build it with `dmcr_jax.make(..., renderer="jax")`. Observations and info are
+  those of `PixelVectorEnv` (NEXT_STEP auto-reset, stacks oldest first); the
+  pixels are the ray caster's, close to MuJoCo's but not equal (see
+  `dmcr_jax.visuals.jax_render`). `functional` is the pure `jax_env.PixelEnv`
+  and `pixel_state` the current `jax_env.PixelState`, for code that scans steps
+  on the device itself (`train/device_loop.py`).
+  """
+
+  timing_parts = ("step", "transfer")
+
+  def __init__(self, task: str, num_envs: int = 1, visual_seeds: Any = 0,
+               vary: str | Sequence[str] | None = "all", frame_skip: int | None = None,
+               frame_stack: int = 3, image_size: int | tuple[int, int] = 84,
+               camera: int | str = 0, seed: int = 0, *, shadows: bool = True,
+               reflection: bool = True, render_chunk: int | None = None,
+               obs_on_device: bool = False, solver_iterations: int | None = None,
+               ls_iterations: int | None = None):
+    super().__init__(task, num_envs, visual_seeds, vary, frame_skip, frame_stack,
+                     image_size, camera, seed, solver_iterations, ls_iterations)
+    if render_chunk is not None:
+      render_chunk = positive_int("render_chunk", render_chunk)
+    self._options = dict(camera=camera, shadows=bool(shadows), reflection=bool(reflection),
+                         render_chunk=render_chunk)
+    self.obs_on_device = bool(obs_on_device)
+    self._ps = None
+    self._donate = jax.default_backend() != "cpu"
+    self._use_seeds()
+
+  def step(self, actions, *, while_rendering: Callable[[], Any] | None = None):
+    """One agent step of every env (NEXT_STEP auto-reset, see the module docstring).
+
+    Args:
+      actions: float (N, action_size), finite (clipped to the action bounds).
+      while_rendering: called once, after the step is dispatched and before its
+        results are awaited (as for `PixelVectorEnv.step`: a place to dispatch
+        other device work). Its time counts as "step".
+
+    Returns:
+      (observations, rewards, terminated, truncated, info); observations are a
+      NumPy array, or a device `jax.Array` with `obs_on_device=True`.
+
+    Raises:
+      ValueError: wrong shape or non-finite actions (nothing is stepped).
+      RuntimeError: `step` before `reset`.
+    """
+    if self._ps is None:
+      raise RuntimeError("call reset() before step()")
+    actions = self._check_actions(actions)
+    t0 = time.perf_counter()
+    fn = jax_env.step_donated if self._donate else jax_env.step
+    ps, reward, truncated = fn(self.functional, self._ps, jnp.asarray(actions))
+    if while_rendering is not None:
+      while_rendering()
+    jax.block_until_ready(ps)
+    t1 = time.perf_counter()
+    obs, host = self._adopt(ps, reward, truncated)
+    self.timings["step"] += t1 - t0
+    self.timings["transfer"] += time.perf_counter() - t1
+    self.timed_steps += 1
+    terminated = np.zeros(self.num_envs, bool)
+    return obs, host["reward"], terminated, host["truncated"], self._info(host)
+
+  @property
+  def pixel_state(self) -> jax_env.PixelState | None:
+    """The current `jax_env.PixelState` (None before reset)."""
+    return self._ps
+
+  def _check_seeds(self, seeds):
+    return jax_env.check_range(seeds) if isinstance(seeds, SeedRange) else seeds
+
+  def _use_seeds(self) -> None:
+    """Builds the functional env for the current seeds: fixed seeds only replace
+    its look table (nothing recompiles); a `SeedRange` is static."""
+    self._use_physics()
+    self.functional = jax_env.make_env(
+        self.task, self.num_envs, self.seeds, self.vary, self.frame_skip, self.frame_stack,
+        self.height, self.width, **self._options)
+    self._ps = None
+
+  def _reset(self, key):
+    # The pool env's jitted `physics_env.init` (shared compilation), then the
+    # looks gathered on device and fresh stacks (`jax_env.start`, as `set_state`).
+    # The same as `jax_env.reset(self.functional, key)`.
+    physics = self._init(key, self._seed_arg)
+    look = self.functional.looks_of(physics.visual_seed)
+    return self._adopt(jax_env.start(self.functional, physics, look))
+
+  def _start_from(self, es: physics_env.EnvState):
+    """Fresh stacks from `es`; each env's look follows its `visual_seed`."""
+    rm, scene = jax_env.scene_of(self.domain, self.camera)
+    look = jax_env.host_looks(scene, rm, jax.device_get(es.visual_seed), self.vary)
+    return self._adopt(jax_env.start(self.functional, es, look))
+
+  def _adopt(self, ps: jax_env.PixelState, reward=None, truncated=None):
+    """Makes `ps` current; (obs, host fields) or, without a reward, (obs, info)."""
+    self._ps, self._es = ps, ps.physics
+    fields = self._host_fields(ps.physics, reward, truncated)
+    if not self.obs_on_device:
+      fields["obs"] = ps.obs
+    host = jax.device_get(fields)
+    self._obs = ps.obs if self.obs_on_device else host["obs"]
+    return (self._obs, host) if reward is not None else (self._obs, self._info(host))
 
 
 def make(task: str, num_envs: int = 1, visual_seeds: Any = 0,
          vary: str | Sequence[str] | None = "all", frame_skip: int | None = None,
          frame_stack: int = 3, image_size: int | tuple[int, int] = 84,
-         camera: int | str = 0, seed: int = 0, **kwargs) -> PixelVectorEnv:
+         camera: int | str = 0, seed: int = 0, renderer: str = "pool",
+         **kwargs) -> PixelVectorEnv | JaxPixelVectorEnv:
   """N DMCR envs with pixels, stepped as one batch (see the module docstring).
 
   Args:
     task: one of `dmcr_jax.ALL_TASKS`, e.g. "walker-walk".
     num_envs: N ≥ 1.
     visual_seeds: an int (every env), N ints (one per env), or a `SeedRange`
-      drawn from at every reset (few-shot: `levels(1000)`; test: `TEST_SEEDS`).
+      drawn from at every reset (few-shot: `levels(1000)`; test: `TEST_SEEDS`;
+      with renderer="jax" at most `jax_env.MAX_RANGE_LOOKS` seeds).
     vary: factors the visual seeds change ("all", "none", "floor,background", …).
     frame_skip: control steps per agent step, rewards summed (default: the
       paper's action repeat, `default_frame_skip(task)`).
@@ -385,17 +562,35 @@ def make(task: str, num_envs: int = 1, visual_seeds: Any = 0,
     image_size: H = W, or (H, W).
     camera: camera id or name (camera 0 is the one the visual seeds move).
     seed: dynamics seed (initial states; and few-shot seed draws).
-    **kwargs: `workers`, `quality` ("exact", "fast", "fastest"), `gl`
-      ("egl", "osmesa") for the `RenderPool`; `copy_obs` (default True; False
-      returns views of shared memory, see the module docstring);
+    renderer: "pool" (default: MuJoCo's renderer in CPU worker processes,
+      dm_control's pixels) or "jax" (the JAX ray caster on the device, physics,
+      frames and stacks in one jitted call; close to MuJoCo's pixels, not equal).
+    **kwargs: for "pool": `workers`, `quality` ("exact", "fast", "fastest"), `gl`
+      ("egl", "osmesa") for the `RenderPool`, `copy_obs` (default True; False
+      returns views of shared memory, see the module docstring). For "jax"
+      (which has no workers and no quality presets): `shadows`, `reflection`
+      (default True: MuJoCo's picture), `render_chunk` (envs per render chunk,
+      see `jax_env.make_env`), `obs_on_device` (default False; True returns
+      observations as device arrays, skipping their transfer). Both:
       `solver_iterations`, `ls_iterations` for the physics (`models.load`).
 
   Returns:
-    A `PixelVectorEnv` (a gymnasium `VectorEnv`); call `reset()` first.
+    A `PixelVectorEnv` or a `JaxPixelVectorEnv` (gymnasium `VectorEnv`s); call
+    `reset()` first.
 
   Raises:
-    ValueError: unknown task, factor, quality or GL backend (the message lists
-      the valid ones), num_envs ≤ 0, a visual-seed count other than 1 or N.
+    ValueError: unknown task, factor, renderer, quality or GL backend (the message
+      lists the valid ones), num_envs ≤ 0, a visual-seed count other than 1 or N,
+      an option of the other renderer, a SeedRange too large for renderer="jax".
   """
-  return PixelVectorEnv(task, num_envs, visual_seeds, vary, frame_skip, frame_stack,
-                        image_size, camera, seed, **kwargs)
+  if renderer not in RENDERERS:
+    raise ValueError(f"Unknown renderer {renderer!r}; valid: {', '.join(RENDERERS)}.")
+  other = _JAX_ONLY if renderer == "pool" else _POOL_ONLY
+  wrong = sorted(set(kwargs) & set(other))
+  if wrong:
+    owner = "jax" if renderer == "pool" else "pool"
+    raise ValueError(f"{', '.join(wrong)} apply only to renderer={owner!r}, not "
+                     f"renderer={renderer!r}")
+  cls = PixelVectorEnv if renderer == "pool" else JaxPixelVectorEnv
+  return cls(task, num_envs, visual_seeds, vary, frame_skip, frame_stack, image_size,
+             camera, seed, **kwargs)

@@ -67,8 +67,27 @@ def test_bad_protocols_are_rejected():
     ev.check_eval_config(ev.EvalConfig(visual_seeds=2, dynamics_seeds=3), "cartpole-balance")
   with pytest.raises(ValueError, match="positive int"):
     ev.check_eval_config(ev.EvalConfig(visual_seeds=0), "cartpole-balance")
+  with pytest.raises(ValueError, match="pool, jax"):
+    ev.check_eval_config(ev.EvalConfig(renderer="opengl"), "cartpole-balance")
+  with pytest.raises(ValueError, match="only to renderer 'pool'"):
+    ev.check_eval_config(ev.EvalConfig(renderer="jax", workers=2), "cartpole-balance")
   with pytest.raises(SystemExit):
     ev.main(["/nonexistent/run"])
+
+
+def test_the_jax_renderer_runs_the_same_protocol(run_dir, tmp_path):
+  # The same episodes (initial states, looks) rendered by the JAX ray caster: the
+  # table has the same shape, and says which renderer drew it.
+  cfg = ev.EvalConfig(**{**TINY.__dict__, "quality": "exact", "workers": None,
+                         "renderer": "jax", "conditions": ("none", "all")})
+  summary = ev.evaluate(run_dir, cfg, out_dir=str(tmp_path), agents=[0], progress=False)
+  row = summary["agents"][0]
+  assert len(row["train"]["episodes"]) == TINY.train_episodes
+  for c in ("none", "all"):
+    assert len(row["conditions"][c]["episodes"]) == TINY.visual_seeds * TINY.dynamics_seeds
+    assert np.isfinite(row["conditions"][c]["mean"])
+  with open(tmp_path / "eval.md") as f:
+    assert "rendered by the JAX ray caster" in f.read()
 
 
 def test_protocol_table_arithmetic_and_determinism(run_dir, tmp_path):
@@ -135,3 +154,16 @@ def test_conv_activations_match_a_numpy_convolution():
       patch = x[:, 2 * i:2 * i + 3, 2 * j:2 * j + 3, :]
       out[:, i, j] = np.einsum("bhwc,hwco->bo", patch, np.asarray(p["kernel"])) + p["bias"]
   np.testing.assert_allclose(maps[0], np.maximum(out, 0).mean(-1), rtol=1e-4, atol=1e-5)
+
+
+def test_episode_video_tiles_the_looks_frame_by_frame(run_dir, tmp_path):
+  import imageio.v2 as imageio
+  from train import analysis
+  path = analysis.episode_video(run_dir, str(tmp_path), looks=2, quality="fastest", workers=1,
+                                scale=2)
+  assert os.path.basename(path) in ("episode.mp4", "episode.gif")
+  frames = imageio.mimread(path) if path.endswith(".gif") else list(imageio.get_reader(path))
+  # One frame per agent step (10 per episode at action repeat 100); two 16 px looks
+  # side by side, doubled.
+  assert len(frames) == 10
+  assert np.asarray(frames[0]).shape[:2] == (32, 64)

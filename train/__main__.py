@@ -12,6 +12,10 @@ Arguments are checked before anything is compiled. Outputs go to `--out`
 orbax checkpoints; `--resume` continues from the latest checkpoint (see
 `train.loop` for what is restored: agents, step and RNG key, not the buffers).
 
+`--renderer jax` renders with the JAX ray caster on the device and runs training
+in chunks of `--chunk-steps` vector steps, each one XLA call (`train.device_loop`);
+`--quality` and `--workers` belong to the default CPU render pool (`--renderer pool`).
+
 `--algo` picks the learner (`train.sac.ALGOS`); unset options take its defaults
 (`train.sac.ALGO_DEFAULTS`: CURL renders at 100 and crops to 84 and takes no
 `--aug`; SAC+AE uses batch 128 and no augmentation unless `--aug` names one).
@@ -59,8 +63,14 @@ def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
                  help="default: 256 (128 for sac_ae)")
   p.add_argument("--image-size", type=int, default=None,
                  help="rendered side (default: 84; 100 for curl)")
-  p.add_argument("--quality", default=d.quality, help="render preset: exact, fast, fastest")
-  p.add_argument("--workers", type=int, default=None, help="render workers")
+  p.add_argument("--renderer", default=d.renderer,
+                 help="pool (MuJoCo in CPU workers, the default) or jax (the JAX ray "
+                      "caster; training runs in chunks of --chunk-steps on the device)")
+  p.add_argument("--chunk-steps", type=int, default=d.chunk_steps,
+                 help="--renderer jax: vector steps per device call (default: %(default)s)")
+  p.add_argument("--quality", default=d.quality,
+                 help="render preset: exact, fast, fastest (--renderer pool)")
+  p.add_argument("--workers", type=int, default=None, help="render workers (--renderer pool)")
   p.add_argument("--dtype", default=s.compute_dtype,
                  help="compute dtype of the networks: float32 or bfloat16")
   p.add_argument("--agent-loop", default=d.agent_loop,
@@ -86,6 +96,7 @@ def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
                       buffer_capacity=a.buffer_capacity, image_size=a.image_size,
                       quality=a.quality, workers=a.workers, log_every=a.log_every,
                       checkpoint_every=a.checkpoint_every, agent_loop=a.agent_loop,
+                      renderer=a.renderer, chunk_steps=a.chunk_steps,
                       out_dir=a.out or default_out(a.task, sac_cfg),
                       sac=sac_cfg)
     check_config(cfg)

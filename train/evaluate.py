@@ -91,6 +91,9 @@ class EvalConfig:
     conditions: the conditions to run; None = every one that applies.
     quality: render preset (the default, "exact", is dm_control's look).
     workers: render workers (None: one per core).
+    renderer: "pool" (MuJoCo's pixels from the CPU render pool, the reference) or
+      "jax" (the JAX ray caster on the device: fast, close to MuJoCo's pixels but
+      not equal; `quality` and `workers` do not apply).
   """
   visual_seeds: int = 100
   dynamics_seeds: int = 3
@@ -99,6 +102,7 @@ class EvalConfig:
   conditions: tuple[str, ...] | None = None
   quality: str = "exact"
   workers: int | None = None
+  renderer: str = "pool"
 
 
 def check_eval_config(cfg: EvalConfig, task: str) -> tuple[str, ...]:
@@ -110,6 +114,7 @@ def check_eval_config(cfg: EvalConfig, task: str) -> tuple[str, ...]:
     raise ValueError(f"train_episodes ({cfg.train_episodes}) must be at most "
                      f"visual_seeds · dynamics_seeds = {cfg.visual_seeds * cfg.dynamics_seeds}")
   check_quality(cfg.quality)
+  check_renderer(cfg)
   valid = conditions_for(task)
   conditions = valid if cfg.conditions is None else tuple(cfg.conditions)
   bad = [c for c in conditions if c not in valid]
@@ -117,6 +122,23 @@ def check_eval_config(cfg: EvalConfig, task: str) -> tuple[str, ...]:
     raise ValueError(f"conditions {bad or conditions!r} are not valid for {task}; valid: "
                      f"{', '.join(valid)}")
   return conditions
+
+
+def check_renderer(cfg: EvalConfig) -> None:
+  """A ValueError for an unknown renderer, or pool options given to the JAX one."""
+  from dmcr_jax.env import RENDERERS
+  if cfg.renderer not in RENDERERS:
+    raise ValueError(f"renderer must be one of {', '.join(RENDERERS)}, got {cfg.renderer!r}")
+  if cfg.renderer == "jax" and (cfg.quality != "exact" or cfg.workers is not None):
+    raise ValueError("quality and workers apply only to renderer 'pool' (the JAX ray "
+                     "caster has no render workers and no quality presets)")
+
+
+def render_options(cfg: EvalConfig) -> dict:
+  """`dmcr_jax.make`'s renderer keywords for `cfg`."""
+  if cfg.renderer == "jax":
+    return dict(renderer="jax")
+  return dict(quality=cfg.quality, workers=cfg.workers)
 
 
 @jax.jit
@@ -198,7 +220,7 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
   env = dmcr_jax.make(train_cfg.task, num_envs=n, visual_seeds=train_look,
                       vary=train_cfg.vary, frame_skip=train_cfg.action_repeat,
                       frame_stack=train_cfg.frame_stack, image_size=train_cfg.image_size,
-                      seed=cfg.seed, quality=cfg.quality, workers=cfg.workers)
+                      seed=cfg.seed, **render_options(cfg))
   bar = None
   if progress:
     from tqdm.auto import tqdm
@@ -287,6 +309,12 @@ def _paper_row(summary: dict) -> tuple[str, dict] | None:
   return None if row is None else (method, row)
 
 
+def _render_words(cfg: dict) -> str:
+  if cfg.get("renderer", "pool") == "jax":
+    return "rendered by the JAX ray caster"
+  return f"render quality {cfg['quality']}"
+
+
 def markdown(summary: dict) -> str:
   """The results as the paper's Table 4 (returns per condition) plus train and E_G."""
   conditions = summary["conditions"]
@@ -296,8 +324,8 @@ def markdown(summary: dict) -> str:
            f"step {summary['checkpoint_step']:,}): train = mean return over "
            f"{cfg['train_episodes']} initial states at the training look "
            f"({summary['train_look']}); each condition = mean over {cfg['visual_seeds']} "
-           f"held-out visual seeds × {cfg['dynamics_seeds']} initial states; render "
-           f"quality {cfg['quality']}; E_G = (train − test) / train. Wall time "
+           f"held-out visual seeds × {cfg['dynamics_seeds']} initial states; "
+           f"{_render_words(cfg)}; E_G = (train − test) / train. Wall time "
            f"{summary['wall_s']:.0f} s.", "",
            "| " + " | ".join(head) + " |", "|---|" + "---:|" * (len(head) - 1)]
   last = "all" if "all" in conditions else conditions[-1]
@@ -369,6 +397,8 @@ def main(argv=None) -> None:
   p.add_argument("--agents", default=None, help="comma-separated agent indices")
   p.add_argument("--quality", default=d.quality)
   p.add_argument("--workers", type=int, default=None)
+  p.add_argument("--renderer", default=d.renderer,
+                 help="pool (MuJoCo's pixels, the default) or jax (the JAX ray caster)")
   p.add_argument("--out", default=None, help="default: RUN_DIR/eval")
   p.add_argument("--no-progress", action="store_true")
   p.add_argument("--invariance", action="store_true",
@@ -383,13 +413,14 @@ def main(argv=None) -> None:
   try:
     cfg = EvalConfig(visual_seeds=a.visual_seeds, dynamics_seeds=a.dynamics_seeds,
                      train_episodes=a.train_episodes, seed=a.seed, quality=a.quality,
-                     workers=a.workers,
+                     workers=a.workers, renderer=a.renderer,
                      conditions=tuple(a.conditions.split(",")) if a.conditions else None)
     agents = [int(x) for x in a.agents.split(",")] if a.agents else None
     task = loop.load_config(a.run_dir).task
     if a.skip_protocol:
       from dmcr_jax.visuals.tiled import check_quality
       check_quality(cfg.quality)
+      check_renderer(cfg)
     else:
       check_eval_config(cfg, task)
   except (ValueError, FileNotFoundError) as e:

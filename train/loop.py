@@ -35,6 +35,11 @@ Update chunks: on accelerators all updates owed at a step run as one jitted
 same ops outside one (measured with this update), each update pair is its own
 jitted call instead (dispatch costs little next to a CPU update).
 
+Renderer: with `TrainConfig.renderer = "jax"` (`train --renderer jax`), `train`
+hands the run to `train.device_loop`, which runs chunks of this loop (act, the owed
+updates, env step, buffer add; the same order and update count) as single XLA
+calls and reuses this module's config, log, checkpoints, resume and summary.
+
 Checkpoints (orbax, `<out>/checkpoints`): the agents (parameters, optimizer
 states, α, update count), the step counter and the RNG key, every
 `checkpoint_every` steps and when SIGINT/SIGTERM arrives. `resume` restores
@@ -59,11 +64,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from dmcr_jax.checks import positive_int
+from dmcr_jax.visuals.levels import SeedRange
 from train import replay, sac
 
 
 AGENT_LOOPS = ("vmap", "map")
 """What `TrainConfig.agent_loop` accepts."""
+RENDERERS = ("pool", "jax")
+"""What `TrainConfig.renderer` accepts (`dmcr_jax.make`'s renderers)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,6 +101,11 @@ class TrainConfig:
       checkpoints fall on the first vector step at or past each multiple.
     agent_loop: "vmap" or "map", how the K agents' updates are batched; None picks
       by backend (module doc).
+    renderer: "pool" (the CPU render pool; this module's host loop) or "jax" (the
+      JAX ray caster; `train.device_loop` runs chunks of training as single XLA
+      calls).
+    chunk_steps: with renderer "jax", vector steps (of all envs) per XLA call;
+      logs, checkpoints and the stop flag are handled between chunks.
     out_dir: where the CSV, the PNG and the checkpoints go.
     sac: the learner's hyperparameters.
   """
@@ -114,6 +127,8 @@ class TrainConfig:
   checkpoint_every: int = 10_000
   out_dir: str = "runs/default"
   agent_loop: str | None = None
+  renderer: str = "pool"
+  chunk_steps: int = 50
   sac: sac.SACConfig = sac.SACConfig()
 
   def __post_init__(self):
@@ -160,6 +175,17 @@ def check_config(cfg: TrainConfig) -> None:
   if cfg.buffer_capacity < cfg.num_envs * (cfg.frame_stack + 1):
     raise ValueError(f"buffer_capacity must be at least num_envs·(frame_stack + 1) = "
                      f"{cfg.num_envs * (cfg.frame_stack + 1)}")
+  if cfg.renderer not in RENDERERS:
+    raise ValueError(f"renderer must be one of {', '.join(RENDERERS)}, got {cfg.renderer!r}")
+  if cfg.renderer == "jax":
+    positive_int("chunk_steps", cfg.chunk_steps)
+    if cfg.quality != "exact" or cfg.workers is not None:
+      raise ValueError("quality and workers apply only to renderer 'pool' (the JAX ray "
+                       "caster has no render workers and no quality presets)")
+    seeds = parse_visual_seeds(cfg.visual_seeds)
+    if isinstance(seeds, SeedRange):
+      from dmcr_jax.jax_env import check_range
+      check_range(seeds)
   if cfg.agent_loop is not None and cfg.agent_loop not in AGENT_LOOPS:
     raise ValueError(f"agent_loop must be one of {', '.join(AGENT_LOOPS)}, got "
                      f"{cfg.agent_loop!r}")
@@ -188,16 +214,20 @@ def _agent_parallel(fn, mesh):
   return jax.shard_map(fn, mesh=mesh, in_specs=spec, out_specs=spec)
 
 
+def actions(agents: sac.AgentState, obs: jax.Array, keys: jax.Array, random: bool):
+  """Actions in [−1, 1] for obs (K, N, H, W, C) of K agents: the policies' samples,
+  or uniform (`random`, the warm-up); keys (K,). Pure (both loops use it)."""
+  size = agents.networks.actor.action_size
+  if random:
+    return jax.vmap(lambda o, k: jax.random.uniform(k, (o.shape[0], size), minval=-1,
+                                                    maxval=1))(obs, keys)
+  return jax.vmap(lambda a, o, k: sac.act(a, o, k))(agents, obs, keys)
+
+
 @functools.partial(jax.jit, static_argnames=("random", "mesh"))
 def _act(agents: sac.AgentState, obs: jax.Array, keys: jax.Array, random: bool, mesh=None):
-  """Actions in [−1, 1] for obs (K, N, H, W, C): the policies', or uniform."""
-  size = agents.networks.actor.action_size
-
-  def fn(agents, obs, keys):
-    if random:
-      return jax.vmap(lambda o, k: jax.random.uniform(k, (o.shape[0], size), minval=-1,
-                                                      maxval=1))(obs, keys)
-    return jax.vmap(lambda a, o, k: sac.act(a, o, k))(agents, obs, keys)
+  """`actions`, jitted, per device along the agent axis."""
+  fn = lambda agents, obs, keys: actions(agents, obs, keys, random)
   return _agent_parallel(fn, mesh)(agents, obs, keys)
 
 
@@ -216,18 +246,32 @@ def _update(agents, buffers, keys, pairs: int, config: sac.SACConfig, mesh=None,
   `unroll` unrolls the scan over pairs (for CPU, module doc).
   """
   def one_agent(agent, buffer, key):
-    def body(agent, k):
-      k_sample, k_update = jax.random.split(k)
-      batches = jax.vmap(lambda kk: replay.sample(buffer, kk, config.batch_size))(
-          jax.random.split(k_sample, 2))
-      return sac.update_pair(agent, batches, k_update, config)
+    body = lambda agent, k: update_pair(agent, buffer, k, config)
     agent, metrics = jax.lax.scan(body, agent, jax.random.split(key, pairs), unroll=unroll)
     return agent, jax.tree.map(jnp.mean, metrics)
+  return _agent_parallel(over_agents(one_agent, agent_loop, agents), mesh)(
+      agents, buffers, keys)
+
+
+def update_pair(agent: sac.AgentState, buffer: replay.ReplayBuffer, key: jax.Array,
+                config: sac.SACConfig):
+  """One agent's `sac.update_pair` on two batches sampled from its buffer (pure).
+
+  Returns:
+    (agent, metrics of the pair).
+  """
+  k_sample, k_update = jax.random.split(key)
+  batches = jax.vmap(lambda kk: replay.sample(buffer, kk, config.batch_size))(
+      jax.random.split(k_sample, 2))
+  return sac.update_pair(agent, batches, k_update, config)
+
+
+def over_agents(one_agent, agent_loop: str, agents: sac.AgentState):
+  """`one_agent(agent, buffer, key)` batched over the agent axis: "vmap" batches
+  the agents, "map" runs them one after the other (module doc)."""
   if agent_loop == "map" and agents.step.shape[0] > 1:
-    batched = lambda *args: jax.lax.map(lambda a: one_agent(*a), args)
-  else:
-    batched = jax.vmap(one_agent)
-  return _agent_parallel(batched, mesh)(agents, buffers, keys)
+    return lambda *args: jax.lax.map(lambda a: one_agent(*a), args)
+  return jax.vmap(one_agent)
 
 
 def _mesh(k: int):
@@ -275,9 +319,11 @@ def _restore(manager, agents, key):
   return state["agents"], jax.random.wrap_key_data(state["key"]), int(state["step"])
 
 
-def to_env_action(action: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
-  """Policy actions in [−1, 1] → the env's bounds [low, high] (float32)."""
-  return (low + (np.asarray(action) + 1.0) * 0.5 * (high - low)).astype(np.float32)
+def to_env_action(action, low: np.ndarray, high: np.ndarray):
+  """Policy actions in [−1, 1] → the env's bounds [low, high] (float32; a NumPy
+  array, or a `jax.Array` for a `jax.Array` (traced) input)."""
+  xp = jnp if isinstance(action, jax.Array) else np
+  return (low + (xp.asarray(action) + 1.0) * 0.5 * (high - low)).astype(xp.float32)
 
 
 def save_config(cfg: TrainConfig, out_dir: str) -> None:
@@ -302,9 +348,17 @@ def init_agents(cfg: TrainConfig, obs_shape, action_size: int) -> sac.AgentState
   """Fresh agents for `cfg.agents()`, stacked along a leading agent axis."""
   aug_index = {name: i for i, name in enumerate(cfg.sac.aug_names)}
   specs = cfg.agents()
+  return _init_agents(jnp.asarray([seed for seed, _ in specs]),
+                      jnp.asarray([aug_index[a] for _, a in specs]),
+                      tuple(obs_shape), int(action_size), cfg.sac)
+
+
+@functools.partial(jax.jit, static_argnums=(2, 3, 4))
+def _init_agents(seeds, aug_indices, obs_shape, action_size, config):
+  # Jitted: one compilation instead of op-by-op dispatch (about twice as fast on CPU;
+  # the same values).
   return jax.vmap(lambda s, i: sac.init_agent(jax.random.key(s), obs_shape, action_size,
-                                              cfg.sac, i))(
-      jnp.asarray([seed for seed, _ in specs]), jnp.asarray([aug_index[a] for _, a in specs]))
+                                              config, i))(seeds, aug_indices)
 
 
 def load_run(out_dir: str, step: int | None = None):
@@ -338,20 +392,13 @@ def load_run(out_dir: str, step: int | None = None):
 # The loop ---------------------------------------------------------------------------
 
 
-def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict:
-  """Trains `len(cfg.seeds)` agents; returns a summary (also written as JSON).
-
-  Writes `<out_dir>/config.json`, `<out_dir>/log.csv` (one row per finished
-  episode: step, agent, seed, augmentation, return, wall time, transitions/s and
-  the latest update metrics), `<out_dir>/learning_curve.png`,
-  `<out_dir>/summary.json` and the checkpoints.
+def open_run(cfg: TrainConfig, resume: bool):
+  """Checks `cfg`, creates `out_dir` and writes config.json; the checkpoint manager.
 
   Raises:
-    ValueError: a bad config (before anything is built).
+    ValueError: a bad config.
     FileExistsError: `out_dir` already holds checkpoints and `resume` is False.
-    FileNotFoundError: `resume` and no checkpoint.
   """
-  import dmcr_jax
   check_config(cfg)
   os.makedirs(cfg.out_dir, exist_ok=True)
   manager = _checkpointer(cfg.out_dir)
@@ -360,6 +407,136 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
                           f"{manager.latest_step()}): pass resume=True (--resume) to "
                           "continue it, or choose another out_dir (--out)")
   save_config(cfg, cfg.out_dir)
+  return manager
+
+
+def initial_state(cfg: TrainConfig, manager, resume: bool, obs_shape, action_size: int):
+  """Fresh agents (or the checkpoint's), empty buffers, the run's key and step.
+
+  Returns:
+    (agents, buffers with leading agent axis K, key, start step).
+
+  Raises:
+    FileNotFoundError: `resume` and no checkpoint.
+  """
+  k, n = len(cfg.agents()), cfg.num_envs
+  agents = init_agents(cfg, obs_shape, action_size)
+  one = replay.init(cfg.buffer_capacity, n, obs_shape[:2] + (3,), action_size,
+                    cfg.frame_stack)
+  buffers = jax.tree.map(lambda x: jnp.broadcast_to(x, (k,) + x.shape), one)
+  key = jax.random.key(int(cfg.seeds[0]) + 7919)
+  start = 0
+  if resume:
+    restored = _restore(manager, agents, key)
+    if restored is None:
+      raise FileNotFoundError(f"--resume: no checkpoint in {cfg.out_dir}/checkpoints")
+    agents, key, start = restored
+  return agents, buffers, key, start
+
+
+class RunLog:
+  """A run's host side between steps (or chunks): the episode log (log.csv), the
+  progress bar, and the stop flag that SIGINT/SIGTERM set (the handlers are
+  restored by `close`)."""
+
+  def __init__(self, cfg: TrainConfig, start: int, resume: bool, progress: bool):
+    self.cfg, self.specs, self.start = cfg, cfg.agents(), start
+    self.stop = {"signal": None}
+    self._previous = {s: signal.signal(s, lambda sig, _: self.stop.update(signal=sig))
+                      for s in (signal.SIGINT, signal.SIGTERM)}
+    self.path = os.path.join(cfg.out_dir, "log.csv")
+    self.fields = ["step", "agent", "seed", "aug", "episode_return", "wall_s",
+                   "agent_steps_per_s", "critic_loss", "actor_loss", "alpha", "q"]
+    if cfg.sac.algo != "sac_aug":
+      self.fields.append("aux_loss")
+    new_log = not (resume and os.path.exists(self.path))
+    self._file = open(self.path, "w" if new_log else "a", newline="")
+    self._writer = csv.DictWriter(self._file, fieldnames=self.fields)
+    if new_log:
+      self._writer.writeheader()
+    self._bar = None
+    if progress:
+      from tqdm.auto import tqdm
+      self._bar = tqdm(total=cfg.steps, initial=start, desc=cfg.task, unit="step")
+    self.t0 = time.perf_counter()
+    self.recent: list[float] = []
+
+  @property
+  def stopped(self) -> bool:
+    return self.stop["signal"] is not None
+
+  def wall(self) -> float:
+    return time.perf_counter() - self.t0
+
+  def episode(self, step: int, agent: int, episode_return: float, wall: float,
+              metrics: dict) -> None:
+    """One finished episode of `agent` (metrics: name → (K,) latest update means;
+    NaN entries, no update yet, are left out)."""
+    self.recent.append(episode_return)
+    row = dict(step=step, agent=agent, seed=self.specs[agent][0], aug=self.specs[agent][1],
+               episode_return=episode_return, wall_s=round(wall, 2),
+               agent_steps_per_s=round((step - self.start) * len(self.specs)
+                                       / max(wall, 1e-9), 1))
+    for f in self.fields[7:]:
+      if f in metrics and np.isfinite(np.mean(metrics[f][agent])):
+        row[f] = float(np.mean(metrics[f][agent]))
+    self._writer.writerow(row)
+
+  def progress(self, step: int) -> None:
+    """Flushes the log and moves the progress bar to `step`."""
+    self._file.flush()
+    if self._bar is not None:
+      self._bar.update(min(step, self.cfg.steps) - self._bar.n)
+      if self.recent:
+        self._bar.set_postfix(ret=f"{np.mean(self.recent[-10 * len(self.specs):]):.1f}",
+                              sps=f"{(step - self.start) * len(self.specs) / self.wall():.0f}")
+
+  def close(self) -> None:
+    for s, handler in self._previous.items():
+      signal.signal(s, handler)
+    self._file.close()
+    if self._bar is not None:
+      self._bar.close()
+
+
+def finish(cfg: TrainConfig, step: int, log: RunLog) -> dict:
+  """The run's summary (also summary.json) and learning_curve.png."""
+  specs = cfg.agents()
+  summary = dict(task=cfg.task, seeds=list(cfg.seeds), augs=list(cfg.sac.aug_names),
+                 steps=step, num_envs=cfg.num_envs, interrupted=log.stopped,
+                 wall_s=log.wall(),
+                 final_return=plot_learning_curve(log.path, os.path.join(
+                     cfg.out_dir, "learning_curve.png"), specs))
+  with open(os.path.join(cfg.out_dir, "summary.json"), "w") as f:
+    json.dump(summary, f, indent=1)
+  return summary
+
+
+def crossed(every: int, before: int, step: int) -> bool:
+  """Whether `step` passed a multiple of `every` since `before` (0: never)."""
+  return bool(every) and step // every != before // every
+
+
+def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict:
+  """Trains `len(cfg.seeds)` agents; returns a summary (also written as JSON).
+
+  Writes `<out_dir>/config.json`, `<out_dir>/log.csv` (one row per finished
+  episode: step, agent, seed, augmentation, return, wall time, transitions/s and
+  the latest update metrics), `<out_dir>/learning_curve.png`,
+  `<out_dir>/summary.json` and the checkpoints. With `cfg.renderer == "jax"`
+  the run is `train.device_loop.train` (same outputs).
+
+  Raises:
+    ValueError: a bad config (before anything is built).
+    FileExistsError: `out_dir` already holds checkpoints and `resume` is False.
+    FileNotFoundError: `resume` and no checkpoint.
+  """
+  import dmcr_jax
+  check_config(cfg)
+  if cfg.renderer == "jax":
+    from train import device_loop
+    return device_loop.train(cfg, resume=resume, progress=progress)
+  manager = open_run(cfg, resume)
   specs = cfg.agents()
   k, n = len(specs), cfg.num_envs
   env = dmcr_jax.make(cfg.task, num_envs=k * n, visual_seeds=parse_visual_seeds(cfg.visual_seeds),
@@ -373,42 +550,15 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
     mesh = _mesh(k)
     on_cpu = jax.default_backend() == "cpu"
     agent_loop = cfg.agent_loop or ("vmap" if on_cpu else "map")
-    agents = init_agents(cfg, obs_shape, action_size)
-    one = replay.init(cfg.buffer_capacity, n, obs_shape[:2] + (3,), action_size,
-                      cfg.frame_stack)
-    buffers = jax.tree.map(lambda x: jnp.broadcast_to(x, (k,) + x.shape), one)
-    key = jax.random.key(int(cfg.seeds[0]) + 7919)
-    start = 0
-    if resume:
-      restored = _restore(manager, agents, key)
-      if restored is None:
-        raise FileNotFoundError(f"--resume: no checkpoint in {cfg.out_dir}/checkpoints")
-      agents, key, start = restored
+    agents, buffers, key, start = initial_state(cfg, manager, resume, obs_shape, action_size)
     agents, buffers = _put(agents, mesh), _put(buffers, mesh)
-
-    stop = {"signal": None}
-    previous = {s: signal.signal(s, lambda sig, _: stop.update(signal=sig))
-                for s in (signal.SIGINT, signal.SIGTERM)}
-    log_path = os.path.join(cfg.out_dir, "log.csv")
-    fields = ["step", "agent", "seed", "aug", "episode_return", "wall_s", "agent_steps_per_s",
-              "critic_loss", "actor_loss", "alpha", "q"]
-    if cfg.sac.algo != "sac_aug":
-      fields.append("aux_loss")
-    new_log = not (resume and os.path.exists(log_path))
-    log_file = open(log_path, "w" if new_log else "a", newline="")
-    writer = csv.DictWriter(log_file, fieldnames=fields)
-    if new_log:
-      writer.writeheader()
-    bar = None
-    if progress:
-      from tqdm.auto import tqdm
-      bar = tqdm(total=cfg.steps, initial=start, desc=cfg.task, unit="step")
-    t0, owed, metrics, recent, ready = time.perf_counter(), 0.0, {}, [], False
+    log = RunLog(cfg, start, resume, progress)
+    owed, metrics, ready = 0.0, {}, False
     try:
       obs, info = env.reset(seed=int(cfg.seeds[0]) + start)
       first = info["episode_step"] == 0
       step = start
-      while step < cfg.steps and stop["signal"] is None:
+      while step < cfg.steps and not log.stopped:
         key, k_act, k_upd = jax.random.split(key, 3)
         obs_k = _put(jnp.asarray(obs.reshape((k, n) + obs.shape[1:])), mesh)
         action = _act(agents, obs_k, _put(jax.random.split(k_act, k), mesh),
@@ -440,41 +590,19 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
         buffers = _add(buffers, obs_k[..., -3:], _put(jnp.asarray(first.reshape(k, n)), mesh),
                        action, _put(jnp.asarray(reward.reshape(k, n)), mesh), mesh=mesh)
         obs, first = next_obs, info["episode_step"] == 0
-        wall = time.perf_counter() - t0
+        wall = log.wall()
+        host_metrics = {f: np.asarray(v) for f, v in metrics.items()} if truncated.any() else {}
         for i in np.flatnonzero(truncated):
-          a = i // n
-          recent.append(float(info["episode_return"][i]))
-          row = dict(step=step, agent=a, seed=specs[a][0], aug=specs[a][1],
-                     episode_return=float(info["episode_return"][i]), wall_s=round(wall, 2),
-                     agent_steps_per_s=round((step - start) * k / max(wall, 1e-9), 1))
-          row.update({f: float(np.mean(metrics[f][a])) for f in fields[7:] if f in metrics})
-          writer.writerow(row)
-        crossed = lambda every: every and step // every != before // every
-        if crossed(cfg.log_every) or step >= cfg.steps:
-          log_file.flush()
-          if bar is not None:
-            bar.update(min(step, cfg.steps) - bar.n)
-            if recent:
-              bar.set_postfix(ret=f"{np.mean(recent[-10 * k:]):.1f}",
-                              sps=f"{(step - start) * k / wall:.0f}")
-        if crossed(cfg.checkpoint_every):
+          log.episode(step, int(i // n), float(info["episode_return"][i]), wall, host_metrics)
+        if crossed(cfg.log_every, before, step) or step >= cfg.steps:
+          log.progress(step)
+        if crossed(cfg.checkpoint_every, before, step):
           _save(manager, step, agents, key)
       if manager.latest_step() != step:
         _save(manager, step, agents, key)
     finally:
-      for s, handler in previous.items():
-        signal.signal(s, handler)
-      log_file.close()
-      if bar is not None:
-        bar.close()
-  summary = dict(task=cfg.task, seeds=list(cfg.seeds), augs=list(cfg.sac.aug_names),
-                 steps=step, num_envs=n, interrupted=stop["signal"] is not None,
-                 wall_s=time.perf_counter() - t0,
-                 final_return=plot_learning_curve(log_path, os.path.join(
-                     cfg.out_dir, "learning_curve.png"), specs))
-  with open(os.path.join(cfg.out_dir, "summary.json"), "w") as f:
-    json.dump(summary, f, indent=1)
-  return summary
+      log.close()
+  return finish(cfg, step, log)
 
 
 def agent_label(seed: int, aug: str, augs) -> str:

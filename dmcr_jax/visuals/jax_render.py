@@ -44,6 +44,9 @@ segmentation render ≥ 0.949 for every body whose silhouette covers ≥ 50 pixe
 (mean ≥ 0.992 per domain); bodies of 10–50 pixels go down to 0.80 (one or two
 edge pixels of a tessellated sphere or capsule).
 
+Used by `dmcr_jax.make(..., renderer="jax")` (`dmcr_jax.jax_env`: physics, this
+renderer and frame stacks in one jitted call) and `train --renderer jax`.
+
 Command line: `python -m dmcr_jax.visuals.jax_render [--compare DOMAIN …]
 --seeds 25 --states 2 --out docs/` writes docs/jax_render_parity.png (MuJoCo |
 JAX | 3×|diff|) and prints, per domain, the per-body silhouette IoU and the mean

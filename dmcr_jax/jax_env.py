@@ -1,0 +1,269 @@
+"""N DMCR pixel envs as pure JAX functions: physics, ray-cast frames and frame stacks in one call.
+
+The functional core of `dmcr_jax.make(..., renderer="jax")`. A `PixelEnv` (a
+frozen pytree: the task, the domain's `Scene` with its texture bank on device,
+the table of looks the visual seeds select, and static sizes) offers
+
+* `env.reset(key) -> PixelState` — every env's first episode and first stack;
+* `env.step(state, actions) -> (PixelState, reward, truncated)` — one agent step
+  of all N envs: `physics_env.step` (frame skip, rewards summed, NEXT_STEP
+  auto-reset, next visual seeds), the looks of the envs that reset, one
+  `jax_render.render_batch` of the post-step body poses and task model variables
+  (targets), and the frame stacks;
+* `env.start(physics, look) -> PixelState` — fresh stacks for a given physics
+  state (reset and `set_state` use it).
+
+All are pure and jittable (pass the `PixelEnv` as an argument, not a closure: its
+texture bank is ~100 MB), so a training loop can `lax.scan` them
+(`train/device_loop.py`). Semantics are those of the pool env (`dmcr_jax.env`):
+gymnasium's NEXT_STEP auto-reset (the step that ends an episode returns its last
+frame, reward and `truncated=True`; the env's next step ignores its action and
+returns the new episode's first frame with reward 0), stacks of uint8
+(N, H, W, 3·frame_stack) frames, oldest first, a reset env's stack being its
+first frame repeated.
+
+Visual seeds (`make_env(visual_seeds=...)`): fixed seeds (one per env) give a
+table of N looks, row i for env i. A few-shot `SeedRange` gives a table of one
+look per seed of the range, precomputed once on the host (`render_model.prepare`
++ `device_looks`, about 0.5 s and 212 B of device memory per 10,000 walker
+seeds); on device, an env that resets draws its seed (`physics_env`) and gathers
+row `seed − range.start`. Ranges of more than `MAX_RANGE_LOOKS` seeds are
+refused: draw test looks from a fixed list instead (`TEST_SEEDS.first(n)`).
+
+The frames are the JAX ray caster's (`dmcr_jax.visuals.jax_render`), close to,
+not equal to, MuJoCo's (see that module's docstring for what differs).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from dmcr_jax import physics_env
+from dmcr_jax.models.base import Task
+from dmcr_jax.visuals import jax_render as JR
+from dmcr_jax.visuals import jax_render_scene as JS
+from dmcr_jax.visuals import render_model as rmod
+from dmcr_jax.visuals.levels import SeedRange
+
+MAX_RANGE_LOOKS = 100_000
+"""The largest `SeedRange` whose looks `make_env` precomputes (≈ 21 MB on device and
+≈ 5 s of host work for walker)."""
+RENDER_CHUNK = 1024
+"""Default envs per vmapped render chunk above which `render_batch` maps over chunks
+(bounds the objects × pixels × envs distance arrays)."""
+
+
+@struct.dataclass
+class PixelState:
+  """The state of N pixel envs (leading axis N everywhere).
+
+  Attributes:
+    physics: the `physics_env.EnvState` (task states, visual seeds, keys,
+      `needs_reset`, and the episode counters `episode`, `episode_step`,
+      `episode_return`).
+    look: the `DeviceLook` of every env's current episode.
+    obs: uint8 (N, H, W, 3·frame_stack) frame stacks, oldest frame first.
+  """
+  physics: physics_env.EnvState
+  look: JS.DeviceLook
+  obs: jax.Array
+
+
+@struct.dataclass
+class PixelEnv:
+  """N envs of one task, rendered by the JAX ray caster (build with `make_env`).
+
+  Attributes:
+    scene: the domain's `Scene` (objects, lights, camera, texture bank).
+    looks: `DeviceLook` table: (N, …) one row per env for fixed seeds, or one row
+      per seed of `seed_range`.
+    fixed_seeds: int32 (N,) visual seeds (fixed seeds) or None (a range).
+    task: static; the `Task`.
+    seed_range: static; the few-shot `SeedRange`, or None.
+    num_envs, frame_skip, frame_stack, height, width: static sizes.
+    shadows, reflection: static; the ray caster's options (`jax_render.render`).
+    render_chunk: static; envs per render chunk (None: all at once).
+  """
+  scene: JS.Scene
+  looks: JS.DeviceLook
+  fixed_seeds: jax.Array | None
+  task: Task = struct.field(pytree_node=False)
+  seed_range: SeedRange | None = struct.field(pytree_node=False)
+  num_envs: int = struct.field(pytree_node=False)
+  frame_skip: int = struct.field(pytree_node=False)
+  frame_stack: int = struct.field(pytree_node=False)
+  height: int = struct.field(pytree_node=False)
+  width: int = struct.field(pytree_node=False)
+  shadows: bool = struct.field(pytree_node=False, default=True)
+  reflection: bool = struct.field(pytree_node=False, default=True)
+  render_chunk: int | None = struct.field(pytree_node=False, default=None)
+
+  @property
+  def _seeds(self) -> physics_env.SeedSource:
+    return self.seed_range if self.seed_range is not None else self.fixed_seeds
+
+  def looks_of(self, visual_seed: jax.Array) -> JS.DeviceLook:
+    """The looks of envs showing `visual_seed` (int32 (N,), drawn by this env).
+
+    Fixed seeds: the table (row i is env i's seed). A range: rows
+    `visual_seed − start` (clipped to the table).
+    """
+    if self.seed_range is None:
+      return self.looks
+    rows = jnp.clip(visual_seed - self.seed_range.start, 0, len(self.seed_range) - 1)
+    return self.looks.take(rows)
+
+  def render(self, physics: physics_env.EnvState, look: JS.DeviceLook) -> jax.Array:
+    """One frame per env, uint8 (N, H, W, 3), of the physics state under `look`."""
+    info = physics.task.info
+    keys = {k for k, _, _ in self.scene.variables}
+    variables = {k: info[k] for k in self.task.model_variable_ids if k in keys}
+    return JR.render_batch(self.scene, JS.poses(physics.task.data), look, variables or None,
+                           chunk=self.render_chunk, height=self.height, width=self.width,
+                           shadows=self.shadows, reflection=self.reflection)
+
+  def start(self, physics: physics_env.EnvState, look: JS.DeviceLook) -> PixelState:
+    """Fresh frame stacks (the first frame repeated) for a physics state.
+
+    Args:
+      physics: an `EnvState` of N envs.
+      look: their `DeviceLook` (leading axis N).
+
+    Returns:
+      The `PixelState`.
+    """
+    frame = self.render(physics, look)
+    # A copy, so the state never shares buffers with `self.looks` (a jitted
+    # identity would forward them, and a donated state would delete the table).
+    look = jax.tree.map(jnp.copy, look)
+    return PixelState(physics=physics, look=look,
+                      obs=jnp.tile(frame, (1, 1, 1, self.frame_stack)))
+
+  def reset(self, key: jax.Array) -> PixelState:
+    """Starts every env (as `physics_env.init`, then `start`).
+
+    Args:
+      key: a `jax.random` key (the run's dynamics key; and few-shot seed draws).
+
+    Returns:
+      The `PixelState` of N new episodes.
+    """
+    physics = physics_env.init(self.task, self._seeds, key, self.num_envs)
+    return self.start(physics, self.looks_of(physics.visual_seed))
+
+  def step(self, state: PixelState, actions: jax.Array
+           ) -> tuple[PixelState, jax.Array, jax.Array]:
+    """One agent step of N envs (NEXT_STEP auto-reset, see the module docstring).
+
+    Args:
+      state: the current `PixelState`.
+      actions: float (N, action_size) in the task's bounds (clipped; NaN → 0).
+
+    Returns:
+      (next PixelState, reward float32 (N,), truncated bool (N,)).
+    """
+    resetting = state.physics.needs_reset
+    physics, reward, truncated = physics_env.step(self.task, self._seeds, self.frame_skip,
+                                                  state.physics, actions)
+    look = state.look
+    if self.seed_range is not None:     # fixed seeds keep their look across resets
+      pick = lambda new, old: jnp.where(
+          resetting.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)
+      look = jax.tree.map(pick, self.looks_of(physics.visual_seed), look)
+    frame = self.render(physics, look)
+    shifted = jnp.concatenate([state.obs[..., 3:], frame], axis=-1)
+    obs = jnp.where(resetting[:, None, None, None],
+                    jnp.tile(frame, (1, 1, 1, self.frame_stack)), shifted)
+    return PixelState(physics=physics, look=look, obs=obs), reward, truncated
+
+
+def host_looks(scene: JS.Scene, rm: rmod.RenderModel, seeds, vary) -> JS.DeviceLook:
+  """The `DeviceLook` of visual seeds (host work: `sample`, `prepare`, `device_looks`).
+
+  Args:
+    scene: the domain's scene.
+    rm: its render model.
+    seeds: int visual seeds (S,).
+    vary: the factors the seeds change.
+
+  Returns:
+    `DeviceLook` with leading axis S.
+  """
+  seeds = np.asarray(seeds, np.int32)
+  return JS.device_looks(scene, rm, rmod.prepare(rm, rm.sample(seeds, vary=vary)))
+
+
+def check_range(seeds: SeedRange) -> SeedRange:
+  """Returns a `SeedRange` the JAX renderer can precompute, else a ValueError."""
+  if len(seeds) > MAX_RANGE_LOOKS:
+    raise ValueError(
+        f"renderer='jax' precomputes one look per seed of a SeedRange and takes at most "
+        f"{MAX_RANGE_LOOKS:,} seeds; {seeds} has {len(seeds):,}. Use a smaller range "
+        "(levels(n)) or fixed seeds (e.g. TEST_SEEDS.first(n), one per env)")
+  return seeds
+
+
+@functools.lru_cache(maxsize=8)
+def scene_of(domain: str, camera: int | str = 0) -> tuple[rmod.RenderModel, JS.Scene]:
+  """The domain's render model and `Scene` for `camera` (built once per process)."""
+  rm = rmod.build_render_model(domain)
+  return rm, JS.build_scene(rm, camera)
+
+
+def make_env(task: Task, num_envs: int, seeds: SeedRange | np.ndarray, vary,
+             frame_skip: int, frame_stack: int, height: int, width: int, *,
+             camera: int | str = 0, shadows: bool = True, reflection: bool = True,
+             render_chunk: int | None = None) -> PixelEnv:
+  """Builds a `PixelEnv` (host work: the scene once per domain, the looks per call).
+
+  Args:
+    task: the `Task` (`models.load`).
+    num_envs: N.
+    seeds: a `SeedRange` (few-shot; at most `MAX_RANGE_LOOKS` seeds) or fixed
+      int32 (N,) visual seeds.
+    vary: the factors the visual seeds change.
+    frame_skip, frame_stack, height, width: as for `dmcr_jax.make`.
+    camera: camera id or name (camera 0 is the one the looks move).
+    shadows, reflection: the ray caster's options (default: MuJoCo's picture).
+    render_chunk: envs per render chunk; None = all at once up to `RENDER_CHUNK`
+      envs, `RENDER_CHUNK` above.
+
+  Returns:
+    The `PixelEnv`.
+
+  Raises:
+    ValueError: a range larger than `MAX_RANGE_LOOKS`, or fixed seeds not (N,).
+    NotImplementedError: a scene the ray caster cannot draw (`build_scene`).
+  """
+  rm, scene = scene_of(task.spec.domain, camera)
+  if isinstance(seeds, SeedRange):
+    check_range(seeds)
+    table = host_looks(scene, rm, np.arange(seeds.start, seeds.stop), vary)
+    fixed = None
+  else:
+    fixed = np.asarray(seeds, np.int32)
+    if fixed.shape != (num_envs,):
+      raise ValueError(f"fixed visual seeds must have shape ({num_envs},), got {fixed.shape}")
+    table = host_looks(scene, rm, fixed, vary)
+    fixed = jnp.asarray(fixed)
+  if render_chunk is None and num_envs > RENDER_CHUNK:
+    render_chunk = RENDER_CHUNK
+  return PixelEnv(scene=scene, looks=table, fixed_seeds=fixed, task=task,
+                  seed_range=seeds if isinstance(seeds, SeedRange) else None,
+                  num_envs=int(num_envs), frame_skip=int(frame_skip),
+                  frame_stack=int(frame_stack), height=int(height), width=int(width),
+                  shadows=bool(shadows), reflection=bool(reflection),
+                  render_chunk=render_chunk)
+
+
+# Jitted entry points (the env is an argument: its arrays are not baked in as constants).
+reset = jax.jit(lambda env, key: env.reset(key))
+start = jax.jit(lambda env, physics, look: env.start(physics, look))
+step = jax.jit(lambda env, state, actions: env.step(state, actions))
+step_donated = jax.jit(lambda env, state, actions: env.step(state, actions),
+                       donate_argnums=(1,))
