@@ -365,10 +365,6 @@ class PixelVectorEnv(_PixelEnvBase):
     terminated = np.zeros(self.num_envs, bool)
     return obs, host["reward"], terminated, host["truncated"], self._info(host)
 
-  def render(self) -> np.ndarray | None:
-    """The latest frame of every env, uint8 (N, H, W, 3) (None before reset)."""
-    return None if self._obs is None else self._obs[..., -3:].copy()
-
   def close(self, **kwargs) -> None:
     """Stops the render workers (idempotent)."""
     if self._pool is not None:
