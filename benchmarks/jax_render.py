@@ -95,7 +95,8 @@ def bench(task: str, n: int, size: int, shadows: bool, reflection: bool,
 
 
 def bench_env(task: str, n: int, size: int, shadows: bool, reflection: bool,
-              chunk: int | None, repeats: int, steps: int, scan_steps: int) -> dict:
+              chunk: int | None, repeats: int, steps: int, scan_steps: int,
+              ls_iterations: int | None = None) -> dict:
   """Agent-steps/s of `make(task, n, renderer="jax")` (module doc, `--mode env`)."""
   import jax
   import jax.numpy as jnp
@@ -103,7 +104,8 @@ def bench_env(task: str, n: int, size: int, shadows: bool, reflection: bool,
   from dmcr_jax import jax_env
   env = dmcr_jax.make(task, num_envs=n, visual_seeds=np.arange(1, n + 1), vary="all",
                       image_size=size, renderer="jax", shadows=shadows,
-                      reflection=reflection, render_chunk=chunk, obs_on_device=True)
+                      reflection=reflection, render_chunk=chunk, obs_on_device=True,
+                      ls_iterations=ls_iterations)
   low, high = env.single_action_space.low, env.single_action_space.high
   rng = np.random.default_rng(0)
   actions = [rng.uniform(low, high, (n, len(low))).astype(np.float32) for _ in range(8)]
@@ -147,6 +149,7 @@ def bench_env(task: str, n: int, size: int, shadows: bool, reflection: bool,
   step_s = statistics.median(step_times) / steps
   scan_s = statistics.median(scan_times) / scan_steps
   return dict(batch=n, chunk=penv.render_chunk, shadows=shadows, reflection=reflection,
+              ls_iterations=ls_iterations or "default",
               frame_skip=env.frame_skip, frame_stack=env.frame_stack,
               objects=penv.scene.num_objects, compile_s=compile_s,
               scan_compile_s=scan_compile_s, step_s=step_s, scan_step_s=scan_s,
@@ -154,12 +157,13 @@ def bench_env(task: str, n: int, size: int, shadows: bool, reflection: bool,
 
 
 def markdown_env(rows: list[dict]) -> str:
-  lines = ["| device | task | size | batch | chunk | frame skip | compile s | "
+  lines = ["| device | task | size | batch | chunk | frame skip | line search | compile s | "
            "env.step agent-steps/s | scanned agent-steps/s |",
-           "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+           "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
   for r in rows:
     lines.append(f"| {r['device']} | {r['task']} | {r['size']} | {r['batch']:,} | "
                  f"{r['chunk'] or '–'} | {r['frame_skip']} | "
+                 f"{r.get('ls_iterations', 'default')} | "
                  f"{r['compile_s'] + r['scan_compile_s']:.1f} | "
                  f"{r['agent_steps_per_s']:,.0f} | {r['scan_agent_steps_per_s']:,.0f} |")
   return "\n".join(lines) + "\n"
@@ -190,6 +194,8 @@ def main(argv=None) -> None:
   p.add_argument("--steps", type=int, default=20, help="--mode env: env.step calls per repeat")
   p.add_argument("--scan-steps", type=int, default=50,
                  help="--mode env: scanned steps per jitted call")
+  p.add_argument("--ls-iterations", type=int, default=None,
+                 help="--mode env: MJX line-search cap (default: the task's, 16)")
   p.add_argument("--out", default=None)
   args = p.parse_args(argv)
   import jax
@@ -202,7 +208,8 @@ def main(argv=None) -> None:
     flags = (not args.no_shadows, not args.no_reflection)
     if env_mode:
       row = dict(common, **bench_env(args.task, n, args.size, *flags, args.chunk or None,
-                                     args.repeats, args.steps, args.scan_steps))
+                                     args.repeats, args.steps, args.scan_steps,
+                                     args.ls_iterations))
     else:
       chunk = args.chunk if args.chunk and n % args.chunk == 0 else None
       row = dict(common, **bench(args.task, n, args.size, *flags, chunk, args.repeats))

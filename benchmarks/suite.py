@@ -54,7 +54,8 @@ from typing import Callable, Iterable, Sequence
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 """The repository root: children run there, so `python -m benchmarks.x` resolves."""
 
-BENCHMARKS = ("physics", "render", "env", "augment", "learner", "step_profile", "train")
+BENCHMARKS = ("physics", "render", "env", "jax_render", "augment", "learner", "step_profile",
+              "train")
 """What ``--only`` accepts, in the order the suite runs them."""
 
 MODES = ("quick", "full")
@@ -83,6 +84,12 @@ _PLANS: dict[str, dict[str, list[tuple[str, str, tuple[str, ...]]]]] = {
         "env": [("", "benchmarks.env", (
             "--task", "pendulum-swingup", "--sizes", "1,4", "--qualities", "fastest",
             "--workers", "2", "--seconds", "0.5", "--original-steps", "20"))],
+        "jax_render": [("", "benchmarks.jax_render", (
+            "--task", "pendulum-swingup", "--size", "32", "--batches", "4,16",
+            "--repeats", "2")),
+                       ("-env", "benchmarks.jax_render", (
+            "--mode", "env", "--task", "pendulum-swingup", "--size", "32", "--batches",
+            "4", "--repeats", "2", "--steps", "3", "--scan-steps", "3"))],
         "augment": [("", "benchmarks.augment", (
             "--batch", "16", "--names", "none,drq,cj+drq", "--min-time", "0.1",
             "--min-reps", "3", "--max-reps", "20"))],
@@ -112,6 +119,11 @@ _PLANS: dict[str, dict[str, list[tuple[str, str, tuple[str, ...]]]]] = {
                 ("-exact", "benchmarks.env", (
                     "--sizes", "1,16,256,1024", "--qualities", "exact", "--seconds", "3",
                     "--original-steps", "50"))],
+        "jax_render": [("", "benchmarks.jax_render", (
+            "--batches", "1024,4096,16384", "--chunk", "1024")),
+                       ("-env", "benchmarks.jax_render", (
+            "--mode", "env", "--batches", "1024,4096,16384", "--chunk", "1024",
+            "--repeats", "2", "--steps", "10", "--scan-steps", "20"))],
         "augment": [("", "benchmarks.augment", ("--batch", "256")),
                     ("-b64", "benchmarks.augment", ("--batch", "64", "--names", "none,drq")),
                     ("-b1024", "benchmarks.augment", (
@@ -576,8 +588,34 @@ def _norm_train(rows: list[dict]) -> list[dict]:
   return out
 
 
+def _norm_jax_render(rows: list[dict]) -> list[dict]:
+  """`benchmarks.jax_render`: ray-cast frames/s, and the JAX env's agent-steps/s
+  (stepped by `env.step` and scanned on the device)."""
+  out = []
+  for r in rows:
+    look = ", ".join(n for n, on in (("shadows", r["shadows"]), ("reflection", r["reflection"]))
+                     if on) or "no shadows, no reflection"
+    sizes = dict(task=r["task"], image_size=r["size"], chunk=r.get("chunk"),
+                 shadows=r["shadows"], reflection=r["reflection"], vary=r.get("vary"))
+    if r["bench"] == "jax_render":
+      out.append(make_row("jax_render", f"frames ({look})", batch=r["batch"],
+                          throughput=r["frames_per_s"], unit="frames/s",
+                          compile_s=r["compile_s"], run_s=r["run_s"], sizes=sizes,
+                          **_common(r)))
+      continue
+    sizes.update(frame_skip=r["frame_skip"], frame_stack=r["frame_stack"])
+    for how, per_s, step_s, compile_s in (
+        ("env.step", r["agent_steps_per_s"], r["step_s"], r["compile_s"]),
+        ("scanned", r["scan_agent_steps_per_s"], r["scan_step_s"], r["scan_compile_s"])):
+      out.append(make_row("jax_render", f"env, {how} ({look})", batch=r["batch"],
+                          throughput=per_s, unit="agent-steps/s", compile_s=compile_s,
+                          run_s=step_s, sizes=sizes, **_common(r)))
+  return out
+
+
 NORMALISERS: dict[str, Callable[[list[dict]], list[dict]]] = {
     "physics": _norm_physics, "render": _norm_render, "env": _norm_env,
+    "jax_render": _norm_jax_render,
     "augment": _norm_augment, "learner": _norm_learner,
     "step_profile": _norm_step_profile, "train": _norm_train}
 
@@ -625,6 +663,7 @@ HEADLINE = {
     "physics": ("physics steps/s", lambda r: r["variant"]),
     "render": ("frames/s", lambda r: r["sizes"].get("quality")),
     "env": ("agent-steps/s with pixels", lambda r: r["variant"]),
+    "jax_render": ("JAX renderer", lambda r: r["variant"]),
     "learner": ("updates/s", lambda r: (r["sizes"].get("agents"), r["sizes"].get("dtype"))),
     "train": ("end-to-end training", lambda r: r["variant"]),
     "step_profile": ("one agent step, all parts", lambda r: r["variant"]),
@@ -686,7 +725,7 @@ def _headline_value(r: dict) -> str:
 
 def _setting(r: dict) -> str:
   s = r["sizes"]
-  if r["benchmark"] in ("physics", "env", "step_profile"):
+  if r["benchmark"] in ("physics", "env", "jax_render", "step_profile"):
     return f"{r['variant']}, N = {r['batch']:,}"
   if r["benchmark"] == "render":
     return f"{r['variant']}, batch {r['batch']:,}"

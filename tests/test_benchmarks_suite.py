@@ -39,6 +39,15 @@ RAW = {
                  physics_ms=30.0, transfer_ms=1.0, render_ms=45.0, copy_ms=3.0,
                  original_agent_steps_per_s=40.0, speedup=5.0,
                  time_utc="2026-11-23T10:00:00Z")],
+    "jax_render": [dict(bench="jax_render", device="cpu", backend="cpu", task="walker-walk",
+                        size=84, vary="all", batch=1024, chunk=1024, shadows=True,
+                        reflection=True, objects=8, compile_s=39.0, run_s=0.02,
+                        frames_per_s=51200.0),
+                   dict(bench="jax_env", device="cpu", backend="cpu", task="walker-walk",
+                        size=84, vary="all", batch=1024, chunk=1024, shadows=True,
+                        reflection=False, frame_skip=2, frame_stack=3, objects=8,
+                        compile_s=68.0, scan_compile_s=49.0, step_s=0.125, scan_step_s=0.1,
+                        agent_steps_per_s=8192.0, scan_agent_steps_per_s=10240.0)],
     "augment": [dict(name="drq", device_kind="cpu", platform="cpu", batch=256,
                      shape=[256, 84, 84, 9], compile_s=1.0, median_ms=40.0, p10_ms=39.0,
                      p90_ms=45.0, pair_median_ms=75.0, time_utc="2026-11-23T10:00:00Z")],
@@ -99,6 +108,12 @@ def test_normalise_baselines_and_ratios():
   assert env[1]["extra"]["parts_ms"]["render"] == 45.0
   (aug,) = suite.normalise("augment", RAW["augment"])
   assert aug["throughput"] == pytest.approx(256 / 0.04) and aug["baseline"] is None
+  frames, step, scanned = suite.normalise("jax_render", RAW["jax_render"])
+  assert frames["variant"] == "frames (shadows, reflection)" and frames["unit"] == "frames/s"
+  assert (step["variant"], step["throughput"], step["compile_s"]) == (
+      "env, env.step (shadows)", 8192.0, 68.0)
+  assert (scanned["unit"], scanned["run_s"], scanned["compile_s"]) == (
+      "agent-steps/s", 0.1, 49.0)
   learner = suite.normalise("learner", RAW["learner"])
   assert learner[0]["is_baseline"] and learner[1]["baseline_throughput"] == 100.0
   assert learner[1]["variant"] == "K=8 bfloat16 map" and learner[1]["ratio"] == 4.0
