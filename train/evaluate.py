@@ -114,7 +114,7 @@ def check_eval_config(cfg: EvalConfig, task: str) -> tuple[str, ...]:
     raise ValueError(f"train_episodes ({cfg.train_episodes}) must be at most "
                      f"visual_seeds · dynamics_seeds = {cfg.visual_seeds * cfg.dynamics_seeds}")
   check_quality(cfg.quality)
-  check_renderer(cfg)
+  loop.check_renderer(cfg.renderer, cfg.quality, cfg.workers)
   valid = conditions_for(task)
   conditions = valid if cfg.conditions is None else tuple(cfg.conditions)
   bad = [c for c in conditions if c not in valid]
@@ -122,16 +122,6 @@ def check_eval_config(cfg: EvalConfig, task: str) -> tuple[str, ...]:
     raise ValueError(f"conditions {bad or conditions!r} are not valid for {task}; valid: "
                      f"{', '.join(valid)}")
   return conditions
-
-
-def check_renderer(cfg: EvalConfig) -> None:
-  """A ValueError for an unknown renderer, or pool options given to the JAX one."""
-  from dmcr_jax.env import RENDERERS
-  if cfg.renderer not in RENDERERS:
-    raise ValueError(f"renderer must be one of {', '.join(RENDERERS)}, got {cfg.renderer!r}")
-  if cfg.renderer == "jax" and (cfg.quality != "exact" or cfg.workers is not None):
-    raise ValueError("quality and workers apply only to renderer 'pool' (the JAX ray "
-                     "caster has no render workers and no quality presets)")
 
 
 def render_options(cfg: EvalConfig) -> dict:
@@ -398,7 +388,8 @@ def main(argv=None) -> None:
   p.add_argument("--quality", default=d.quality)
   p.add_argument("--workers", type=int, default=None)
   p.add_argument("--renderer", default=d.renderer,
-                 help="pool (MuJoCo's pixels, the default) or jax (the JAX ray caster)")
+                 help="for the protocol: pool (MuJoCo's pixels, the default) or jax (the JAX "
+                      "ray caster); the extras render with the pool")
   p.add_argument("--out", default=None, help="default: RUN_DIR/eval")
   p.add_argument("--no-progress", action="store_true")
   p.add_argument("--invariance", action="store_true",
@@ -420,7 +411,7 @@ def main(argv=None) -> None:
     if a.skip_protocol:
       from dmcr_jax.visuals.tiled import check_quality
       check_quality(cfg.quality)
-      check_renderer(cfg)
+      loop.check_renderer(cfg.renderer, cfg.quality, cfg.workers)
     else:
       check_eval_config(cfg, task)
   except (ValueError, FileNotFoundError) as e:

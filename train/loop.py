@@ -152,6 +152,16 @@ def parse_visual_seeds(value) -> Any:
     raise ValueError(f"visual_seeds must be an int or 'levels:<n>', got {value!r}") from None
 
 
+def check_renderer(renderer: str, quality: str, workers: int | None) -> None:
+  """A ValueError for a renderer not in `RENDERERS`, or for the pool's options
+  (`quality` other than the default "exact", `workers`) given to the JAX one."""
+  if renderer not in RENDERERS:
+    raise ValueError(f"renderer must be one of {', '.join(RENDERERS)}, got {renderer!r}")
+  if renderer == "jax" and (quality != "exact" or workers is not None):
+    raise ValueError("quality and workers apply only to renderer 'pool' (the JAX ray "
+                     "caster has no render workers and no quality presets)")
+
+
 def check_config(cfg: TrainConfig) -> None:
   """Raises ValueError naming the problem (before anything is compiled)."""
   from dmcr_jax import models
@@ -175,13 +185,9 @@ def check_config(cfg: TrainConfig) -> None:
   if cfg.buffer_capacity < cfg.num_envs * (cfg.frame_stack + 1):
     raise ValueError(f"buffer_capacity must be at least num_envs·(frame_stack + 1) = "
                      f"{cfg.num_envs * (cfg.frame_stack + 1)}")
-  if cfg.renderer not in RENDERERS:
-    raise ValueError(f"renderer must be one of {', '.join(RENDERERS)}, got {cfg.renderer!r}")
+  check_renderer(cfg.renderer, cfg.quality, cfg.workers)
   if cfg.renderer == "jax":
     positive_int("chunk_steps", cfg.chunk_steps)
-    if cfg.quality != "exact" or cfg.workers is not None:
-      raise ValueError("quality and workers apply only to renderer 'pool' (the JAX ray "
-                       "caster has no render workers and no quality presets)")
     seeds = parse_visual_seeds(cfg.visual_seeds)
     if isinstance(seeds, SeedRange):
       from dmcr_jax.jax_env import check_range
