@@ -21,7 +21,7 @@ Rows go to ``--out`` (JSON lines, appended) and a Markdown table beside it.
 Usage::
 
     python -m benchmarks.learner [--agents 1,8] [--dtypes float32,bfloat16] \\
-        [--loops vmap,map] [--algos sac_aug,curl,sac_ae] [--batch 256] [--pairs 25] [--out PATH]
+        [--loops vmap,map] [--algos sac_aug,curl,sac_ae] [--augs drq,cj+drq] [--batch 256] [--pairs 25] [--out PATH]
 """
 
 from __future__ import annotations
@@ -78,13 +78,15 @@ def _timed(call, state, seconds: float, min_reps: int = 3):
 
 def bench_scanned(k: int, dtype: str, agent_loop: str, batch: int | None, pairs: int,
                   size: int, stack: int, action_size: int, capacity: int, seconds: float,
-                  algo: str = "sac_aug") -> dict:
+                  algo: str = "sac_aug", aug: str | None = None) -> dict:
   """Updates/s of `loop._update` for K agents; one result row.
 
   `batch` None takes the algorithm's default; for CURL the frames are rendered
-  ``curl_crop + 16`` pixels (`size` is the encoder's input).
+  ``curl_crop + 16`` pixels (`size` is the encoder's input). `aug` None takes
+  the algorithm's default augmentation (SAC+AUG: DrQ).
   """
   config = sac.SACConfig(algo=algo, batch_size=batch, compute_dtype=dtype,
+                         **({"aug": aug} if aug else {}),
                          **({"curl_crop": size} if algo == "curl" else {}))
   if algo == "curl":
     size = size + 16
@@ -106,7 +108,7 @@ def bench_scanned(k: int, dtype: str, agent_loop: str, batch: int | None, pairs:
   times, _ = _timed(call, agents, seconds)
   per_call = float(np.median(times))
   updates = 2 * pairs
-  return dict(kind="scanned", algo=algo, agents=k, dtype=dtype, agent_loop=agent_loop,
+  return dict(kind="scanned", algo=algo, aug=",".join(config.aug_names) or "-", agents=k, dtype=dtype, agent_loop=agent_loop,
               batch=config.batch_size, frame_side=size,
               pairs_per_call=pairs, compile_s=round(compile_s, 2), reps=int(times.size),
               ms_per_call=round(per_call * 1e3, 3),
@@ -155,13 +157,16 @@ def bench_python_loop(batch: int | None, size: int, stack: int, action_size: int
 
 def markdown(rows: list[dict]) -> str:
   """All rows as one Markdown table, newest last."""
-  lines = ["| device | kind | algo | agents | dtype | agent loop | batch | updates per call | "
-           "compile s | ms per call | updates/s per agent | agent-updates/s | × baseline "
-           "| UTC |", "|---|---|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---|"]
+  lines = ["| device | kind | algo | aug | agents | dtype | agent loop | batch | "
+           "updates per call | compile s | ms per call | updates/s per agent | "
+           "agent-updates/s | × baseline | UTC |",
+           "|---|---|---|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---|"]
   for r in rows:
     ratio = r.get("x_baseline")
     lines.append(
-        f"| {r['device_kind']} | {r['kind']} | {r.get('algo', 'sac_aug')} | {r['agents']} | "
+        f"| {r['device_kind']} | {r['kind']} | {r.get('algo', 'sac_aug')} | "
+        f"{r.get('aug', 'drq' if r.get('algo', 'sac_aug') == 'sac_aug' else '-')} | "
+        f"{r['agents']} | "
         f"{r['dtype']} | "
         f"{r['agent_loop']} | {r['batch']} | {2 * r['pairs_per_call'] or 1} | "
         f"{r['compile_s']:.1f} | {r['ms_per_call']:.1f} | "
@@ -177,6 +182,9 @@ def main(argv=None) -> None:
   p.add_argument("--dtypes", default="float32,bfloat16")
   p.add_argument("--loops", default="vmap,map", help="agent batching for K > 1")
   p.add_argument("--algos", default="sac_aug", help="comma-separated: sac_aug, curl, sac_ae")
+  p.add_argument("--augs", default=None,
+                 help="comma-separated augmentations (`dmcr_jax.augment` names, e.g. "
+                      "drq,cj+drq,nr+drq) to run for each algorithm; default: its own")
   p.add_argument("--batch", type=int, default=None,
                  help="default: each algorithm's (256; SAC+AE 128)")
   p.add_argument("--pairs", type=int, default=25, help="update pairs per jitted call")
@@ -191,6 +199,13 @@ def main(argv=None) -> None:
   a = p.parse_args(argv)
   for dtype in a.dtypes.split(","):
     sac.SACConfig(compute_dtype=dtype)  # fails early on a bad name
+  augs = a.augs.split(",") if a.augs else [None]
+  for aug in augs:
+    if aug:
+      try:
+        sac.SACConfig(aug=aug)
+      except ValueError as e:
+        p.error(f"--augs: {e}")
   for name in a.algos.split(","):
     if name not in sac.ALGOS:
       p.error(f"--algos: {name!r} is not one of {', '.join(sac.ALGOS)}")
@@ -212,12 +227,12 @@ def main(argv=None) -> None:
   todo = []
   if not a.no_baseline:
     todo.append(lambda: bench_python_loop(**shape))
-  for algo in a.algos.split(","):
+  for algo, aug in [(al, au) for al in a.algos.split(",") for au in augs]:
     for k in map(int, a.agents.split(",")):
       for dtype in a.dtypes.split(","):
         for agent_loop in (a.loops.split(",") if k > 1 else ["vmap"]):
           todo.append(functools.partial(bench_scanned, k, dtype, agent_loop,
-                                        pairs=a.pairs, algo=algo, **shape))
+                                        pairs=a.pairs, algo=algo, aug=aug, **shape))
   for job in todo:
     row = dict(job(), **common)
     if row["kind"] == "python_loop":

@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from train import curl, loop, sac, sac_ae
-from train.networks import Decoder, StrideTwoConvTranspose, center_crop, encoder_sides
+from train.networks import (Decoder, StrideTwoConv, StrideTwoConvTranspose, center_crop,
+                            encoder_sides)
 
 pytestmark = pytest.mark.xdist_group("aux_losses")
 
@@ -287,3 +288,44 @@ def test_learns_to_read_a_pixel_cue(algo):
   after = score(agent)
   assert int(agent.step) == 300
   assert after > 0.8 and after > before + 0.5, (before, after)
+
+
+def test_block_first_layer_is_the_strided_conv():
+  # StrideTwoConv must compute nn.Conv(3×3, stride 2, VALID) of the same params:
+  # the same outputs and gradients (params and input), for even and odd sides
+  # (the encoder's 84 and CURL's 100, then small ones), non-square inputs.
+  cases = [(84, 85, 9, 32), (100, 100, 9, 4), (21, 20, 3, 5), (3, 4, 2, 3), (6, 7, 1, 1)]
+  rng = np.random.default_rng(1)
+  normal = lambda *shape: jnp.asarray(rng.normal(size=shape), jnp.float32)
+  inputs = [({"params": {"kernel": normal(3, 3, c_in, c_out), "bias": normal(c_out)}},
+             normal(2, h, w, c_in),
+             normal(2, (h - 3) // 2 + 1, (w - 3) // 2 + 1, c_out))
+            for h, w, c_in, c_out in cases]
+
+  @jax.jit
+  def outputs_and_grads(inputs):
+    results = []
+    for (_, _, _, c_out), (params, x, weights) in zip(cases, inputs):
+      for layer in (StrideTwoConv(c_out),
+                    nn.Conv(c_out, (3, 3), strides=(2, 2), padding="VALID")):
+        y, vjp = jax.vjp(layer.apply, params, x)
+        results.append((y, *vjp(weights)))
+    return results
+
+  results = outputs_and_grads(inputs)
+  for case, (params, x, weights), got, expect in zip(cases, inputs, results[::2], results[1::2]):
+    assert got[0].shape == expect[0].shape == weights.shape, case
+    for g, e in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(expect)):
+      np.testing.assert_allclose(g, e, rtol=1e-5, atol=1e-5 * np.abs(e).max(),
+                                 err_msg=str(case))
+    half = StrideTwoConv(case[3], dtype="bfloat16")
+    assert jax.eval_shape(half.apply, params, x).dtype == jnp.bfloat16, case
+  # The same key initialises it as it did nn.Conv, under the encoder's name.
+  x = jnp.zeros((1, 84, 84, 9))
+  got, expect = jax.jit(lambda key: (
+      StrideTwoConv(32, kernel_init=nn.initializers.orthogonal()).init(key, x),
+      nn.Conv(32, (3, 3), strides=(2, 2), padding="VALID",
+              kernel_init=nn.initializers.orthogonal()).init(key, x)))(jax.random.key(3))
+  assert jax.tree_util.tree_all(jax.tree_util.tree_map(np.array_equal, got, expect))
+  with pytest.raises(ValueError, match="H, W ≥ 3"):
+    StrideTwoConv(4).init(jax.random.key(0), jnp.zeros((1, 2, 5, 3)))

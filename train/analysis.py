@@ -26,7 +26,10 @@ import numpy as np
 
 from train import loop, sac
 from train.evaluate import greedy_action, held_out_seeds
-from train.networks import center_crop
+from train.networks import StrideTwoConv, center_crop
+
+CONV_LAYERS = (nn.Conv, StrideTwoConv)
+"""The encoder's convolution modules (its first is a `StrideTwoConv`)."""
 
 
 def _agent(run_dir: str, index: int):
@@ -127,7 +130,7 @@ def encoder_invariance(run_dir: str, out_dir: str, agent: int = 0, looks: int = 
 
 def conv_activations(encoder, params, obs: jax.Array) -> list[jax.Array]:
   """The channel mean of every ReLU'd convolution of `encoder`: [(B, h_i, w_i)]."""
-  _, state = encoder.apply(params, obs, capture_intermediates=lambda m, _: isinstance(m, nn.Conv),
+  _, state = encoder.apply(params, obs, capture_intermediates=lambda m, _: isinstance(m, CONV_LAYERS),
                            mutable=["intermediates"])
   inter = state["intermediates"]
   names = sorted((k for k in inter if k.startswith("conv")), key=lambda k: int(k[4:]))
