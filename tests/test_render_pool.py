@@ -117,3 +117,15 @@ def test_frame_stacks_built_in_the_workers_survive_a_killed_worker(pool):
         want[r] = np.concatenate([f[r]] * 3, axis=-1)
       np.testing.assert_array_equal(got, want)
     assert stacked.restarts == 1
+
+
+def test_shift_stacks_is_the_strided_shift():
+  from dmcr_jax.visuals.render_pool import shift_stacks
+  rng = np.random.default_rng(0)
+  for shape in [(5, 4, 3, 9), (2, 3, 3, 6), (1, 1, 1, 12)]:
+    prev = rng.integers(0, 256, shape, np.uint8)
+    out = rng.integers(0, 256, shape, np.uint8)
+    shift_stacks(out, prev)
+    np.testing.assert_array_equal(out[..., :-3], prev[..., 3:])
+  with pytest.raises(AttributeError):  # never a silent copy of a strided view
+    shift_stacks(np.zeros((4, 2, 2, 9), np.uint8)[::2], np.zeros((2, 2, 2, 9), np.uint8))

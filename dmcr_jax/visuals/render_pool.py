@@ -79,6 +79,26 @@ def _look_specs(rm: rmod.RenderModel) -> dict[str, ArraySpec]:
           for f in dataclasses.fields(rmod.Looks)}
 
 
+def shift_stacks(out: np.ndarray, prev: np.ndarray) -> None:
+  """``out[..., :-3] = prev[..., 3:]`` (every stack one frame on) as one contiguous copy.
+
+  Flat, each byte of `prev` goes 3 places back: every pixel's later frames land
+  where its earlier ones were, and its newest frame's 3 channels receive the next
+  pixel's oldest frame, which the caller then overwrites with the new frame. The
+  strided copy (6 bytes of every 9) took 145 ms for 1,024 84×84 stacks of 3 in
+  one process on the H100 box; contiguous, it is a memmove.
+
+  Args:
+    out, prev: C-contiguous uint8 (n, H, W, 3·k) stacks, distinct buffers.
+
+  Raises:
+    AttributeError: a buffer that is not contiguous (no flat view of it exists).
+  """
+  flat_out, flat_prev = out.view(), prev.view()
+  flat_out.shape = flat_prev.shape = (-1,)  # fails rather than copy
+  flat_out[:-3] = flat_prev[3:]
+
+
 class _WorkerRenderer:
   """Built inside each worker: the render model, a tiled renderer, MjData."""
 
@@ -115,7 +135,7 @@ class _WorkerRenderer:
       self.frames = np.empty((n,) + out.shape[1:3] + (3,), np.uint8)
     frames = self.frames[:n]
     self.renderer.render(d, n, prepare, frames)
-    out[..., :-3] = prev[..., 3:]
+    shift_stacks(out, prev)
     out[..., -3:] = frames
     restart = np.flatnonzero(inputs["restart"])
     if len(restart):
