@@ -104,6 +104,33 @@ def test_decoder_restores_the_observation_shape(side):
   assert decoder.apply(params, jnp.ones((3, 8))).shape == (3, side, side, 9)
 
 
+def assert_same_layer(cases, inputs, pairs):
+  """Each case's two layers give the same outputs and the same gradients of a random
+  linear functional Σ weights·y with respect to the params and the input.
+
+  Args:
+    cases: one tuple per case (printed on failure).
+    inputs: per case (params, x, weights).
+    pairs: per case (layer under test, the flax reference layer), with the same params.
+  """
+  @jax.jit
+  def outputs_and_grads(inputs):  # one compilation for all cases
+    results = []
+    for (params, x, weights), layers in zip(inputs, pairs):
+      for layer in layers:
+        y, vjp = jax.vjp(layer.apply, params, x)
+        results.append((y, *vjp(weights)))
+    return results
+
+  results = outputs_and_grads(inputs)
+  for case, (_, _, weights), got, expect in zip(cases, inputs, results[::2], results[1::2]):
+    assert got[0].shape == expect[0].shape == weights.shape, case
+    assert got[0].dtype == expect[0].dtype == jnp.float32, case
+    for g, e in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(expect)):
+      np.testing.assert_allclose(g, e, rtol=1e-5, atol=1e-5 * np.abs(e).max(),
+                                 err_msg=str(case))
+
+
 def test_phased_output_layer_is_the_strided_conv_transpose():
   # StrideTwoConvTranspose must compute nn.ConvTranspose(stride 2, padding (2,
   # after)) of the same params: the same outputs, and the same gradients of a
@@ -120,24 +147,11 @@ def test_phased_output_layer_is_the_strided_conv_transpose():
              normal(2, 2 * in_side - 1 + after, 2 * in_side + 1 + after, c_out))
             for in_side, after, c_in, c_out in cases]
 
-  @jax.jit
-  def outputs_and_grads(inputs):  # one compilation for all cases
-    results = []
-    for (_, after, _, c_out), (params, x, weights) in zip(cases, inputs):
-      for layer in (StrideTwoConvTranspose(c_out, after=after),
-                    nn.ConvTranspose(c_out, (3, 3), strides=(2, 2),
-                                     padding=((2, after), (2, after)))):
-        y, vjp = jax.vjp(layer.apply, params, x)
-        results.append((y, *vjp(weights)))
-    return results
-
-  results = outputs_and_grads(inputs)
-  for case, (params, x, weights), got, expect in zip(cases, inputs, results[::2], results[1::2]):
-    assert got[0].shape == expect[0].shape == weights.shape, case
-    assert got[0].dtype == expect[0].dtype == jnp.float32, case
-    for g, e in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(expect)):
-      np.testing.assert_allclose(g, e, rtol=1e-5, atol=1e-5 * np.abs(e).max(),
-                                 err_msg=str(case))
+  assert_same_layer(cases, inputs, [
+      (StrideTwoConvTranspose(c_out, after=after),
+       nn.ConvTranspose(c_out, (3, 3), strides=(2, 2), padding=((2, after), (2, after))))
+      for _, after, _, c_out in cases])
+  for case, (params, x, _) in zip(cases, inputs):
     # The compute dtype is respected; the parameters stay float32.
     half = StrideTwoConvTranspose(case[3], after=case[1], dtype="bfloat16")
     assert jax.eval_shape(half.apply, params, x).dtype == jnp.bfloat16, case
@@ -302,22 +316,10 @@ def test_block_first_layer_is_the_strided_conv():
              normal(2, (h - 3) // 2 + 1, (w - 3) // 2 + 1, c_out))
             for h, w, c_in, c_out in cases]
 
-  @jax.jit
-  def outputs_and_grads(inputs):
-    results = []
-    for (_, _, _, c_out), (params, x, weights) in zip(cases, inputs):
-      for layer in (StrideTwoConv(c_out),
-                    nn.Conv(c_out, (3, 3), strides=(2, 2), padding="VALID")):
-        y, vjp = jax.vjp(layer.apply, params, x)
-        results.append((y, *vjp(weights)))
-    return results
-
-  results = outputs_and_grads(inputs)
-  for case, (params, x, weights), got, expect in zip(cases, inputs, results[::2], results[1::2]):
-    assert got[0].shape == expect[0].shape == weights.shape, case
-    for g, e in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(expect)):
-      np.testing.assert_allclose(g, e, rtol=1e-5, atol=1e-5 * np.abs(e).max(),
-                                 err_msg=str(case))
+  assert_same_layer(cases, inputs, [
+      (StrideTwoConv(c_out), nn.Conv(c_out, (3, 3), strides=(2, 2), padding="VALID"))
+      for *_, c_out in cases])
+  for case, (params, x, _) in zip(cases, inputs):
     half = StrideTwoConv(case[3], dtype="bfloat16")
     assert jax.eval_shape(half.apply, params, x).dtype == jnp.bfloat16, case
   # The same key initialises it as it did nn.Conv, under the encoder's name.

@@ -204,7 +204,7 @@ def test_only_names_the_valid_choices(capsys):
   assert suite.parse_only("env-exact,physics") == ("physics", "env-exact")
   assert [j.name for j in suite.plan("full", ["env-exact", "augment"])] == [
       "env-exact", "augment", "augment-b64", "augment-b1024"]
-  with pytest.raises(ValueError, match="env-fastest, env-exact"):
+  with pytest.raises(ValueError, match="env-fastest, env-exact, env-target"):
     suite.parse_only("env-slow")
   with pytest.raises(ValueError, match="'env-exact' in --only"):
     suite.parse_only("env-exact", "quick")  # quick mode runs env as one job
@@ -221,6 +221,7 @@ def test_plans_cover_every_benchmark(tmp_path, capsys):
   full = {j.name: " ".join(j.argv) for j in suite.plan("full", cpus=16)}
   assert "--sizes 1,64,1024,8192" in full["physics"] and "--workers 16" in full["render"]
   assert "--sizes 1,16,256,1024" in full["env-fastest"]
+  assert "--renderers pool,jax" in full["env-target"] and "--ls-iterations 4" in full["env-target"]
   assert "--agents 1,8" in full["learner"] and "--batch 256" in full["learner"]
   assert "--algos curl,sac_ae" in full["learner-algos"]
   assert "--sizes 1024" in full["step_profile"]

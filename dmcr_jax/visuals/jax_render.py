@@ -36,28 +36,31 @@ geoms, the shadow map's resolution and bias, more than two transparent layers.
 The floor texture's origin (the plane's (−x, +y) corner) was measured against
 `mujoco.Renderer` (MuJoCo 3.17), not taken from its source.
 
-Measured (84×84, visual seeds 0–24 × 2 dm_control states per domain, the full
-bank, CPU llvmpipe reference): mean absolute pixel difference per frame 1.8–3.1
-(means) / ≤ 4.8 (max) for eight domains, 5.0 / 9.0 for walker and 5.4 / 9.2 for
-reacher (shadow and reflection edges); per-body silhouette IoU against MuJoCo's
-segmentation render ≥ 0.949 for every body whose silhouette covers ≥ 50 pixels
-(mean ≥ 0.992 per domain); bodies of 10–50 pixels go down to 0.80 (one or two
-edge pixels of a tessellated sphere or capsule).
+Measured (84×84, visual seeds 0–99 × 3 dm_control states per domain, the full
+bank, CPU llvmpipe reference; benchmarks/results/jax_render_parity_cpu.md): mean
+absolute pixel difference per frame 2.0–3.1 (means) / ≤ 5.5 (max) for eight
+domains, 5.4 / 12.1 for walker (reflection and shadow edges) and 5.9 / 23.5 for
+reacher (a spotlight low over the floor, which MuJoCo lights per vertex); per-body
+silhouette IoU against MuJoCo's segmentation render ≥ 0.95 in 98.8–100 % of the
+frames where a body covers ≥ 50 pixels (mean ≥ 0.992 per domain); small bodies of
+10–50 pixels lose one or two edge pixels of a tessellated sphere or ellipsoid
+(IoU down to 0.73).
 
 Used by `dmcr_jax.make(..., renderer="jax")` (`dmcr_jax.jax_env`: physics, this
 renderer and frame stacks in one jitted call) and `train --renderer jax`.
 
 Command line: `python -m dmcr_jax.visuals.jax_render [--compare DOMAIN …]
---seeds 25 --states 2 --out docs/` writes docs/jax_render_parity.png (MuJoCo |
-JAX | 3×|diff|) and prints, per domain, the per-body silhouette IoU and the mean
-absolute pixel difference as JSON lines.
+--seeds 100 --states 3 --out docs/ [--json FILE] [--worst N]` writes
+docs/jax_render_parity.png (MuJoCo | JAX | 3×|diff|) and prints, per domain, the
+per-body silhouette IoU and the mean absolute pixel difference as JSON lines
+(appended to FILE, with a Markdown table beside it).
 """
 
 from __future__ import annotations
 
 import functools
 import math
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -716,12 +719,59 @@ def _grid(rows: list[np.ndarray]) -> np.ndarray:
   return np.concatenate(rows, axis=0)
 
 
+def parity_row(domain: str, res: dict, body_names: Sequence[str], **settings) -> dict:
+  """One JSON row summarising `compare`'s result for a domain.
+
+  Per body (keys "id:name"): mean and minimum IoU over the frames where the body
+  was scored, and the fraction of those frames with IoU ≥ 0.95.
+  """
+  per_body: dict[int, list[float]] = {}
+  for frame in res["iou"]:
+    for b, v in frame.items():
+      per_body.setdefault(b, []).append(v)
+  ious = np.asarray([v for vs in per_body.values() for v in vs])
+  name = lambda b: f"{b}:{body_names[b] or 'world'}"
+  return dict(domain=domain, frames=len(res["mad"]), **settings,
+              mad_mean=float(np.mean(res["mad"])), mad_max=float(np.max(res["mad"])),
+              iou_min=float(ious.min()), iou_mean=float(ious.mean()),
+              frac_body_iou_ge_095=float(np.mean(ious >= 0.95)),
+              iou_per_body={name(b): round(float(np.mean(v)), 4)
+                            for b, v in sorted(per_body.items())},
+              iou_min_per_body={name(b): round(float(np.min(v)), 4)
+                                for b, v in sorted(per_body.items())},
+              frac_ge_095_per_body={name(b): round(float(np.mean(np.asarray(v) >= 0.95)), 4)
+                                    for b, v in sorted(per_body.items())},
+              frames_per_body={name(b): len(v) for b, v in sorted(per_body.items())})
+
+
+def parity_markdown(rows: Sequence[dict]) -> str:
+  """A Markdown table of `parity_row` rows: one line per domain and scoring
+  threshold (bodies whose silhouette covers fewer pixels are not scored), with the
+  body of the lowest mean IoU."""
+  lines = ["| domain | min. pixels | frames | mean abs. diff (mean / max) | body-frames scored "
+           "| body IoU mean | min | share ≥ 0.95 | body with the lowest mean IoU |",
+           "|---|---:|---:|---:|---:|---:|---:|---:|---|"]
+  for r in rows:
+    worst = min(r["iou_per_body"], key=r["iou_per_body"].get)
+    counts = r.get("frames_per_body", {})
+    scored = sum(counts.values()) if counts else "–"
+    lines.append(f"| {r['domain']} | {r.get('min_pixels', '–')} | {r['frames']:,} "
+                 f"| {r['mad_mean']:.2f} / {r['mad_max']:.2f} | {scored} "
+                 f"| {r['iou_mean']:.4f} | {r['iou_min']:.3f} | {r['frac_body_iou_ge_095']:.1%} "
+                 f"| {worst} ({r['iou_per_body'][worst]:.3f} mean, "
+                 f"{r['frac_ge_095_per_body'][worst]:.0%} ≥ 0.95 of "
+                 f"{counts.get(worst, '?')} frames) |")
+  return "\n".join(lines) + "\n"
+
+
 def main(argv=None) -> None:
   """`python -m dmcr_jax.visuals.jax_render --compare DOMAIN … --seeds N --out DIR`."""
   import argparse
   import json
   import os
   import sys
+  import time
+  from dmcr_jax.visuals import render_model as rmod
   from dmcr_jax.visuals.factors import DOMAINS
   p = argparse.ArgumentParser(description="JAX ray caster vs MuJoCo's renderer.")
   p.add_argument("--compare", nargs="*", default=list(DOMAINS))
@@ -731,42 +781,61 @@ def main(argv=None) -> None:
   p.add_argument("--supersample", type=int, default=1)
   p.add_argument("--min-pixels", type=int, default=10)
   p.add_argument("--out", default=None, help="folder for jax_render_parity.png")
-  p.add_argument("--json", default=None, help="append one JSON line per domain here")
+  p.add_argument("--worst", type=int, default=0,
+                 help="also write jax_render_worst.png in --out: each domain's N frames "
+                      "of the largest mean absolute difference")
+  p.add_argument("--json", default=None,
+                 help="append one JSON line per domain here; a Markdown table of the "
+                      "file's rows is written beside it (.md)")
   args = p.parse_args(sys.argv[1:] if argv is None else argv)
-  rows = []
-  for domain in [d.split("-")[0] for d in args.compare]:
-    res = compare(domain, range(args.seeds), args.states, args.size,
+  domains = [d.split("-")[0] for d in args.compare]
+  bad = sorted(set(domains) - set(DOMAINS))
+  if bad:
+    p.error(f"unknown domain(s) {', '.join(bad)}; valid: {', '.join(DOMAINS)}")
+  rows, worst_rows = [], []
+  for domain in domains:
+    rm = rmod.build_render_model(domain)
+    res = compare(domain, range(args.seeds), args.states, args.size, rm=rm,
                   supersample=args.supersample, min_pixels=args.min_pixels)
-    ious = [v for frame in res["iou"] for v in frame.values()]
-    per_body: dict[int, list[float]] = {}
-    for frame in res["iou"]:
-      for b, v in frame.items():
-        per_body.setdefault(b, []).append(v)
-    row = dict(domain=domain, frames=len(res["mad"]), size=args.size,
-               supersample=args.supersample, mad_mean=float(np.mean(res["mad"])),
-               mad_max=float(np.max(res["mad"])), iou_min=float(np.min(ious)),
-               iou_mean=float(np.mean(ious)),
-               frac_body_iou_ge_095=float(np.mean(np.asarray(ious) >= 0.95)),
-               iou_per_body={str(b): round(float(np.mean(v)), 4)
-                             for b, v in sorted(per_body.items())},
-               iou_min_per_body={str(b): round(float(np.min(v)), 4)
-                                 for b, v in sorted(per_body.items())})
+    names = [rm.model.body(b).name for b in range(rm.model.nbody)]
+    row = parity_row(domain, res, names, size=args.size, seeds=args.seeds,
+                     states=args.states, supersample=args.supersample,
+                     min_pixels=args.min_pixels, platform=jax.default_backend(),
+                     mujoco_gl=os.environ.get("MUJOCO_GL"),
+                     time_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
     print(json.dumps(row), flush=True)
     if args.json:
       with open(args.json, "a") as f:
         f.write(json.dumps(row) + "\n")
-    for k in (0, min(3, len(res["frames"]) - 1)):
-      ref, img = res["frames"][k]
-      diff = np.clip(np.abs(ref.astype(np.int32) - img) * 3, 0, 255).astype(np.uint8)
-      rows.append(np.concatenate([ref, img, diff], axis=1))
+    side_by_side = lambda k: np.concatenate(
+        [res["frames"][k][0], res["frames"][k][1],
+         np.clip(np.abs(res["frames"][k][0].astype(np.int32) - res["frames"][k][1]) * 3,
+                 0, 255).astype(np.uint8)], axis=1)
+    rows += [side_by_side(k) for k in (0, min(3, len(res["frames"]) - 1))]
+    worst_rows += [side_by_side(k) for k in np.argsort(res["mad"])[::-1][:args.worst]]
+  if args.json:
+    with open(args.json) as f:
+      table = parity_markdown([json.loads(line) for line in f if line.strip()])
+    with open(os.path.splitext(args.json)[0] + ".md", "w") as f:
+      f.write(f"Rows of `python -m dmcr_jax.visuals.jax_render --json {args.json}` (the "
+              "JSONL beside this file holds each row's settings, platform and time): the "
+              "ray caster against `mujoco.Renderer` at visual seeds 0 … seeds − 1 × "
+              "dm_control states (`dm_states`); IoU of each body's silhouette against "
+              "MuJoCo's segmentation rendering, for bodies whose silhouettes (union) cover "
+              "at least `min. pixels`.\n\n" + table)
+    print(table)
   if args.out and rows:
     from PIL import Image
     os.makedirs(args.out, exist_ok=True)
-    path = os.path.join(args.out, "jax_render_parity.png")
-    # 256-colour palette keeps the committed picture small (< 500 KB)
-    Image.fromarray(_grid(rows)).quantize(256, dither=Image.Dither.NONE).save(
-        path, optimize=True)
-    print(f"wrote {path} (MuJoCo | JAX | 3×|diff|; rows: seed 0 and seed 3 per domain)")
+    for name, grid, what in (("jax_render_parity.png", rows, "seed 0 and seed 3"),
+                             ("jax_render_worst.png", worst_rows,
+                              f"the {args.worst} largest differences")):
+      if grid:
+        path = os.path.join(args.out, name)
+        # 256-colour palette keeps the committed picture small (< 500 KB)
+        Image.fromarray(_grid(grid)).quantize(256, dither=Image.Dither.NONE).save(
+            path, optimize=True)
+        print(f"wrote {path} (MuJoCo | JAX | 3×|diff|; rows: {what} per domain)")
 
 
 if __name__ == "__main__":
