@@ -76,14 +76,20 @@ def _timed(call, state, seconds: float, min_reps: int = 3):
   return np.asarray(times), state
 
 
-def bench_scanned(k: int, dtype: str, agent_loop: str, batch: int | None, pairs: int,
-                  size: int, stack: int, action_size: int, capacity: int, seconds: float,
-                  algo: str = "sac_aug", aug: str | None = None) -> dict:
-  """Updates/s of `loop._update` for K agents; one result row.
+def scanned_workload(k: int = 1, dtype: str = "float32", agent_loop: str = "vmap",
+                     batch: int | None = None, pairs: int = 25, size: int = 84,
+                     stack: int = 3, action_size: int = 6, capacity: int = 10_000,
+                     algo: str = "sac_aug", aug: str | None = None):
+  """`loop._update` for K agents on full random buffers, ready to call repeatedly.
 
   `batch` None takes the algorithm's default; for CURL the frames are rendered
   ``curl_crop + 16`` pixels (`size` is the encoder's input). `aug` None takes
   the algorithm's default augmentation (SAC+AUG: DrQ).
+
+  Returns:
+    (call, config, frame side): ``call()`` runs `pairs` update pairs of every
+    agent (one jitted call; the agents are carried from call to call, since the
+    update donates them) and returns the new agents; the first call compiles.
   """
   config = sac.SACConfig(algo=algo, batch_size=batch, compute_dtype=dtype,
                          **({"aug": aug} if aug else {}),
@@ -91,21 +97,30 @@ def bench_scanned(k: int, dtype: str, agent_loop: str, batch: int | None, pairs:
   if algo == "curl":
     size = size + 16
   obs_shape = (size, size, 3 * stack)
-  agents = _agents(k, obs_shape, action_size, config)
+  agents = [_agents(k, obs_shape, action_size, config)]
   buffers = filled_buffers(k, capacity, size, stack, action_size)
   keys = jax.random.split(jax.random.key(1), k)
   update = functools.partial(loop._update, pairs=pairs, config=config,
                              agent_loop=agent_loop)
+
+  def call():
+    agents[0] = update(agents[0], buffers, keys)[0]
+    return agents[0]
+  return call, config, size
+
+
+def bench_scanned(k: int, dtype: str, agent_loop: str, batch: int | None, pairs: int,
+                  size: int, stack: int, action_size: int, capacity: int, seconds: float,
+                  algo: str = "sac_aug", aug: str | None = None) -> dict:
+  """Updates/s of `loop._update` for K agents (`scanned_workload`); one result row."""
+  call, config, size = scanned_workload(k, dtype, agent_loop, batch, pairs, size, stack,
+                                        action_size, capacity, algo, aug)
   t0 = time.perf_counter()
-  agents, _ = update(agents, buffers, keys)  # compiles
-  jax.block_until_ready(agents)
+  jax.block_until_ready(call())  # compiles
   compile_s = time.perf_counter() - t0
-
-  def call(agents):
-    return update(agents, buffers, keys)[0]
-
-  _, agents = _timed(call, agents, 0.0, 2)  # warm-up
-  times, _ = _timed(call, agents, seconds)
+  step = lambda _: call()
+  _timed(step, None, 0.0, 2)  # warm-up
+  times, _ = _timed(step, None, seconds)
   per_call = float(np.median(times))
   updates = 2 * pairs
   return dict(kind="scanned", algo=algo, aug=",".join(config.aug_names) or "-", agents=k, dtype=dtype, agent_loop=agent_loop,

@@ -1,0 +1,203 @@
+"""Where a jitted call's device time goes: a JAX profiler trace summarised per kernel.
+
+`profile_call(call, out_dir)` runs a (compiled, warmed-up) callable a few times
+under `jax.profiler.trace` and `summarise(events)` reads the Perfetto trace that JAX
+writes (`perfetto_trace.json.gz`, `load_trace`): the events of the device's streams
+(processes named ``/device:GPU:…``), grouped by XLA op (the kernel event's
+``hlo_op``), by kind of op or by kernel name, with calls, total and mean time and
+share of the traced device time.
+On a CPU-only machine there are no device processes; XLA's CPU worker threads
+stand in (the rows are then host-side op events, coarse but enough for tests).
+
+The command profiles the two workloads the open speed targets are about:
+
+    python -m benchmarks.profile render --batch 1024 --chunk 1024 --out $OUT/prof
+    python -m benchmarks.profile learner --dtype bfloat16 --out $OUT/prof
+
+Each writes ``summary.md`` (the top `--top` rows) and ``summary.json`` into --out
+beside the raw trace, and prints the table. Why its own tool: GPU time is scarce
+here, and a table of kernels is what decides the next optimisation; the trace
+viewers (TensorBoard, Perfetto UI) are not on the GPU machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import glob
+import gzip
+import json
+import os
+import re
+import sys
+import time
+from typing import Any, Callable, Sequence
+
+HOST_THREAD_PREFIXES = ("tf_XLA",)
+"""Thread-name prefixes of XLA's CPU worker threads (used when no device is traced)."""
+
+HOST_WRAPPER_PREFIXES = ("ThunkExecutor", "ThreadpoolListener", "end: ")
+"""Events on those threads that enclose or mark ops rather than being one."""
+
+
+def load_trace(path: str) -> list[dict]:
+  """The event list of a Perfetto / Chrome JSON trace (``.json`` or ``.json.gz``)."""
+  opener = gzip.open if path.endswith(".gz") else open
+  with opener(path, "rt") as f:
+    data = json.load(f)
+  return data["traceEvents"] if isinstance(data, dict) else data
+
+
+def device_events(events: Sequence[dict]) -> tuple[list[dict], str]:
+  """The complete ("X") events of the device streams, and what they are.
+
+  Returns:
+    (events, "device") when the trace has processes named ``/device:…``;
+    otherwise the op events of XLA's CPU worker threads and "host threads".
+  """
+  procs = {e["pid"]: e["args"]["name"] for e in events
+           if e.get("ph") == "M" and e.get("name") == "process_name"}
+  threads = {(e["pid"], e.get("tid")): e["args"]["name"] for e in events
+             if e.get("ph") == "M" and e.get("name") == "thread_name"}
+  complete = [e for e in events if e.get("ph") == "X" and "dur" in e]
+  device_pids = {pid for pid, name in procs.items() if name.startswith("/device:")}
+  if device_pids:
+    return [e for e in complete if e["pid"] in device_pids], "device"
+  host = {key for key, name in threads.items() if name.startswith(HOST_THREAD_PREFIXES)}
+  return [e for e in complete if (e["pid"], e.get("tid")) in host
+          and not e["name"].startswith(HOST_WRAPPER_PREFIXES)], "host threads"
+
+
+GROUPINGS = ("op", "category", "kernel")
+"""How `summarise` groups events (``--by``)."""
+
+
+def summarise(events: Sequence[dict], by: str = "op", top: int = 30) -> dict[str, Any]:
+  """Per group, calls and time of the traced device events.
+
+  Args:
+    events: a trace's events (`load_trace`).
+    by: "op" groups by the event's ``hlo_op`` argument (falling back to its name),
+      "category" by that op name without its ".N" suffix ("fusion", "custom-call",
+      …), "kernel" by the event's name.
+    top: rows kept, longest total first.
+
+  Returns:
+    {"source": "device" | "host threads", "total_ms": all traced time,
+     "rows": [{"name", "calls", "total_ms", "mean_us", "share"}], "groups": count}.
+  """
+  if by not in GROUPINGS:
+    raise ValueError(f"by must be one of {', '.join(GROUPINGS)}, got {by!r}")
+  picked, source = device_events(events)
+  totals: dict[str, float] = collections.defaultdict(float)
+  calls: dict[str, int] = collections.Counter()
+  for e in picked:
+    name = e["name"]
+    if by in ("op", "category"):
+      name = (e.get("args") or {}).get("hlo_op", name)
+    if by == "category":
+      name = re.sub(r"\.\d+$", "", name)
+    totals[name] += e["dur"]
+    calls[name] += 1
+  total_us = sum(totals.values())
+  rows = [dict(name=n, calls=calls[n], total_ms=t / 1e3, mean_us=t / calls[n],
+               share=t / total_us if total_us else 0.0)
+          for n, t in sorted(totals.items(), key=lambda kv: -kv[1])[:top]]
+  return dict(source=source, total_ms=total_us / 1e3, rows=rows, groups=len(totals))
+
+
+def markdown(summary: dict[str, Any], title: str = "") -> str:
+  """The summary as a Markdown table."""
+  lines = [f"{title}\n" if title else "",
+           f"Traced time on the {summary['source']}: {summary['total_ms']:,.1f} ms in "
+           f"{summary['groups']} groups (top {len(summary['rows'])} below).", "",
+           "| op / kernel | calls | total ms | mean µs | share |", "|---|---:|---:|---:|---:|"]
+  for r in summary["rows"]:
+    name = r["name"] if len(r["name"]) <= 90 else r["name"][:87] + "…"
+    lines.append(f"| `{name}` | {r['calls']:,} | {r['total_ms']:,.2f} | {r['mean_us']:,.1f} "
+                 f"| {r['share']:.1%} |")
+  return "\n".join(lines).lstrip("\n") + "\n"
+
+
+def profile_call(call: Callable[[], Any], out_dir: str, calls: int = 3) -> str:
+  """Runs ``call()`` (compiled and warm) `calls` times under JAX's profiler.
+
+  Returns:
+    The path of the Perfetto trace written under `out_dir`.
+  """
+  import jax
+  pattern = os.path.join(out_dir, "**", "perfetto_trace.json.gz")
+  os.makedirs(out_dir, exist_ok=True)
+  before = set(glob.glob(pattern, recursive=True))
+  with jax.profiler.trace(out_dir, create_perfetto_trace=True):
+    for _ in range(calls):
+      jax.block_until_ready(call())
+  new = set(glob.glob(pattern, recursive=True)) - before
+  if not new:
+    raise RuntimeError(f"the profiler wrote no perfetto_trace.json.gz under {out_dir}")
+  return max(new, key=os.path.getmtime)
+
+
+def render_workload(task: str, batch: int, chunk: int, size: int) -> Callable[[], Any]:
+  """``call()`` rendering `batch` envs of `task` (`benchmarks.jax_render`'s render mode)."""
+  import functools
+  import jax
+  from benchmarks.jax_render import inputs
+  from dmcr_jax.visuals import jax_render as JR
+  scene, bp, looks = inputs(task, batch)
+  fn = jax.jit(functools.partial(JR.render_batch, scene, chunk=chunk or None,
+                                 height=size, width=size))
+  return lambda: fn(bp, looks)
+
+
+def main(argv=None) -> None:
+  p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  p.add_argument("workload", choices=("render", "learner"))
+  p.add_argument("--task", default="walker-walk", help="render: the task")
+  p.add_argument("--batch", type=int, default=None,
+                 help="render: envs (1,024); learner: batch size (256)")
+  p.add_argument("--chunk", type=int, default=0, help="render: envs per chunk (0: all)")
+  p.add_argument("--size", type=int, default=84, help="image side")
+  p.add_argument("--dtype", default="bfloat16", help="learner: compute dtype")
+  p.add_argument("--pairs", type=int, default=5, help="learner: update pairs per call")
+  p.add_argument("--calls", type=int, default=3, help="profiled calls")
+  p.add_argument("--by", default="op", choices=GROUPINGS)
+  p.add_argument("--top", type=int, default=30)
+  p.add_argument("--out", required=True, help="folder for the trace and summary.{md,json}")
+  argv = sys.argv[1:] if argv is None else list(argv)
+  args = p.parse_args(argv)
+  for name in ("batch", "chunk", "size", "pairs", "calls", "top"):
+    value = getattr(args, name)
+    if value is not None and (value < 0 if name == "chunk" else value < 1):
+      p.error(f"--{name} must be {'≥ 0' if name == 'chunk' else 'positive'}, got {value}")
+  import jax
+  if args.workload == "render":
+    call = render_workload(args.task, args.batch or 1024, args.chunk, args.size)
+    what = f"render_batch, {args.task}, N = {args.batch or 1024}, {args.size}×{args.size}"
+  else:
+    from benchmarks.learner import scanned_workload
+    call, _, _ = scanned_workload(dtype=args.dtype, batch=args.batch or 256,
+                                  pairs=args.pairs, size=args.size)
+    what = (f"SAC+AUG, {args.pairs} update pairs per call, batch {args.batch or 256}, "
+            f"{args.size}×{args.size}×9, {args.dtype}")
+  t0 = time.perf_counter()
+  jax.block_until_ready(call())  # compiles
+  compile_s = time.perf_counter() - t0
+  jax.block_until_ready(call())  # warm
+  trace = profile_call(call, args.out, args.calls)
+  summary = summarise(load_trace(trace), by=args.by, top=args.top)
+  device = getattr(jax.devices()[0], "device_kind", jax.default_backend())
+  summary.update(workload=what, device=device, calls=args.calls, compile_s=compile_s,
+                 trace=os.path.relpath(trace, args.out),
+                 time_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
+  table = markdown(summary, f"{what} on {device}, {args.calls} calls "
+                            f"(`python -m benchmarks.profile {' '.join(argv)}`)")
+  with open(os.path.join(args.out, "summary.json"), "w") as f:
+    json.dump(summary, f, indent=1)
+  with open(os.path.join(args.out, "summary.md"), "w") as f:
+    f.write(table)
+  print(table)
+
+
+if __name__ == "__main__":
+  main()
