@@ -12,6 +12,14 @@ and held-out visual-seed ranges.
 Importing the package on a machine without a display (no `DISPLAY`) and without
 `MUJOCO_GL` set selects MuJoCo's headless EGL backend, since MuJoCo reads
 `MUJOCO_GL` once at import and its default (GLFW) needs a display.
+
+It also adds ``--xla_cpu_enable_concurrency_optimized_scheduler=false`` to
+`XLA_FLAGS` unless that flag is already there: with XLA's default CPU scheduler the
+jitted MJX step of 1,024 vmapped walkers (and the pixel env's step at that size)
+never finished on the 2-core CPU machine (every thread parked on a futex; 1,000
+envs ran in 0.6 s a step). It only affects XLA's CPU backend, and only if the
+package is imported before JAX's first computation (when XLA reads its flags);
+set the flag yourself to choose otherwise.
 """
 
 import os as _os
@@ -19,6 +27,11 @@ import os as _os
 if "MUJOCO_GL" not in _os.environ and not _os.environ.get("DISPLAY"):
   _os.environ["MUJOCO_GL"] = "egl"
   _os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+CPU_SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
+"""Added to `XLA_FLAGS` at import unless the flag is set (module docstring)."""
+if "xla_cpu_enable_concurrency_optimized_scheduler" not in _os.environ.get("XLA_FLAGS", ""):
+  _os.environ["XLA_FLAGS"] = f"{_os.environ.get('XLA_FLAGS', '')} {CPU_SCHEDULER_FLAG}".strip()
 
 from dmcr_jax.models import ALL_TASKS, DOMAIN_TASKS, load
 from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, SeedRange, levels
