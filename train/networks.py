@@ -138,6 +138,20 @@ BLOCK_CHANNEL_MULTIPLE = 8
 channel multiple cuDNN's tensor-core kernels want for 16-bit inputs)."""
 
 
+def _conv3x3_params(module: nn.Module, x: jax.Array):
+  """A 3×3 layer's float32 parameters, as nn.Conv names and shapes them
+  ({"kernel": (3, 3, C_in, features), "bias": (features,)}), and the input and
+  both cast to the module's compute dtype (``nn.dtypes.promote_dtype``).
+
+  Called inside the `nn.compact` method of a module with `features`, `dtype`,
+  `kernel_init` and `bias_init` (`StrideTwoConv`, `StrideTwoConvTranspose`).
+  """
+  kernel = module.param("kernel", module.kernel_init, (3, 3, x.shape[-1], module.features),
+                        jnp.float32)
+  bias = module.param("bias", module.bias_init, (module.features,), jnp.float32)
+  return nn.dtypes.promote_dtype(x, kernel, bias, dtype=module.dtype)
+
+
 class StrideTwoConv(nn.Module):
   """A 3×3 stride-2 VALID convolution, computed as a stride-1 one on 2×2 blocks.
 
@@ -172,10 +186,7 @@ class StrideTwoConv(nn.Module):
     """Maps (B, H, W, C_in) to (B, (H − 3)//2 + 1, (W − 3)//2 + 1, features)."""
     if x.ndim != 4 or min(x.shape[1:3]) < 3:
       raise ValueError(f"expected (B, H, W, C) inputs with H, W ≥ 3, got shape {x.shape}")
-    kernel = self.param("kernel", self.kernel_init, (3, 3, x.shape[-1], self.features),
-                        jnp.float32)
-    bias = self.param("bias", self.bias_init, (self.features,), jnp.float32)
-    x, kernel, bias = nn.dtypes.promote_dtype(x, kernel, bias, dtype=self.dtype)
+    x, kernel, bias = _conv3x3_params(self, x)
     out_h, out_w = (x.shape[1] - 3) // 2 + 1, (x.shape[2] - 3) // 2 + 1
     blocks = space_to_depth(x, 2 * (out_h + 1), 2 * (out_w + 1))
     block_kernel = space_to_depth_kernel(kernel)
@@ -317,10 +328,7 @@ class StrideTwoConvTranspose(nn.Module):
     """Maps (B, H, W, C_in) to (B, 2H − 1 + after, 2W − 1 + after, features)."""
     if x.ndim != 4:
       raise ValueError(f"expected (B, H, W, C) inputs, got shape {x.shape}")
-    kernel = self.param("kernel", self.kernel_init, (3, 3, x.shape[-1], self.features),
-                        jnp.float32)
-    bias = self.param("bias", self.bias_init, (self.features,), jnp.float32)
-    x, kernel, bias = nn.dtypes.promote_dtype(x, kernel, bias, dtype=self.dtype)
+    x, kernel, bias = _conv3x3_params(self, x)
     batch, height, width, _ = x.shape
     out_h, out_w = 2 * height - 1 + self.after, 2 * width - 1 + self.after
     if out_h < 1 or out_w < 1:

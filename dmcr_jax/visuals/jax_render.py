@@ -719,6 +719,12 @@ def _grid(rows: list[np.ndarray]) -> np.ndarray:
   return np.concatenate(rows, axis=0)
 
 
+def _side_by_side(ref: np.ndarray, img: np.ndarray) -> np.ndarray:
+  """MuJoCo | JAX | 3×|difference|, one row of the comparison pictures."""
+  diff = np.clip(np.abs(ref.astype(np.int32) - img) * 3, 0, 255).astype(np.uint8)
+  return np.concatenate([ref, img, diff], axis=1)
+
+
 def parity_row(domain: str, res: dict, body_names: Sequence[str], **settings) -> dict:
   """One JSON row summarising `compare`'s result for a domain.
 
@@ -807,12 +813,9 @@ def main(argv=None) -> None:
     if args.json:
       with open(args.json, "a") as f:
         f.write(json.dumps(row) + "\n")
-    side_by_side = lambda k: np.concatenate(
-        [res["frames"][k][0], res["frames"][k][1],
-         np.clip(np.abs(res["frames"][k][0].astype(np.int32) - res["frames"][k][1]) * 3,
-                 0, 255).astype(np.uint8)], axis=1)
-    rows += [side_by_side(k) for k in (0, min(3, len(res["frames"]) - 1))]
-    worst_rows += [side_by_side(k) for k in np.argsort(res["mad"])[::-1][:args.worst]]
+    frames = res["frames"]
+    rows += [_side_by_side(*frames[k]) for k in (0, min(3, len(frames) - 1))]
+    worst_rows += [_side_by_side(*frames[k]) for k in np.argsort(res["mad"])[::-1][:args.worst]]
   if args.json:
     with open(args.json) as f:
       table = parity_markdown([json.loads(line) for line in f if line.strip()])
