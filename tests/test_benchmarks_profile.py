@@ -63,7 +63,8 @@ def test_a_cpu_trace_falls_back_to_xla_threads(tmp_path):
   assert len(P.load_trace(str(plain))) == len(P.load_trace(path))
 
 
-def test_command_profiles_the_renderer(tmp_path, capsys):
+def test_command_profiles_the_renderer(tmp_path, capsys, monkeypatch):
+  monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", ""))  # restored after
   P.main(["render", "--task", "pendulum-swingup", "--batch", "2", "--size", "16",
           "--calls", "1", "--top", "5", "--out", str(tmp_path)])
   summary = json.loads((tmp_path / "summary.json").read_text())
@@ -72,6 +73,7 @@ def test_command_profiles_the_renderer(tmp_path, capsys):
   assert (tmp_path / summary["trace"]).exists()
   assert "| op / kernel |" in (tmp_path / "summary.md").read_text()
   assert "Traced time on the host threads" in capsys.readouterr().out
+  assert "--xla_gpu_enable_command_buffer=" in os.environ["XLA_FLAGS"]
 
 
 def test_command_rejects_bad_sizes(tmp_path, capsys):

@@ -190,6 +190,16 @@ def test_failing_and_hanging_children_are_reported_and_others_run(tmp_path):
   benches = {r["benchmark"] for r in suite.read_jsonl(str(tmp_path / "benchmarks.jsonl"))}
   assert benches == {"physics", "augment"}
 
+  # Outputs rebuilt without a job's raw rows (a folder copied without raw/) keep
+  # its rows; a re-run of that job that writes none drops them.
+  os.remove(suite.raw_path(str(tmp_path), "augment"))
+  suite.write_outputs(str(tmp_path), state)
+  jobs_of = lambda: {r["job"] for r in suite.read_jsonl(str(tmp_path / "benchmarks.jsonl"))}
+  assert jobs_of() == {"physics", "augment"}
+  suite.run_suite([suite.Job("augment", "augment", (PY, "-c", "pass"), 30)], str(tmp_path),
+                  "quick", "test 3", progress=False)
+  assert jobs_of() == {"physics"}
+
 
 def test_only_names_the_valid_choices(capsys):
   assert suite.parse_only(None) == suite.BENCHMARKS
@@ -220,7 +230,7 @@ def test_plans_cover_every_benchmark(tmp_path, capsys):
       assert j.timeout_s == suite.DEFAULT_TIMEOUT_S[mode]
   full = {j.name: " ".join(j.argv) for j in suite.plan("full", cpus=16)}
   assert "--sizes 1,64,1024,8192" in full["physics"] and "--workers 16" in full["render"]
-  assert "--sizes 1,16,256,1024" in full["env-fastest"]
+  assert "--sizes 1024,256,16,1" in full["env-fastest"]
   assert "--renderers pool,jax" in full["env-target"] and "--ls-iterations 4" in full["env-target"]
   assert "--agents 1,8" in full["learner"] and "--batch 256" in full["learner"]
   assert "--algos curl,sac_ae" in full["learner-algos"]
