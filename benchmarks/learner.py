@@ -106,6 +106,9 @@ def scanned_workload(k: int = 1, dtype: str = "float32", agent_loop: str = "vmap
   def call():
     agents[0] = update(agents[0], buffers, keys)[0]
     return agents[0]
+  # The compiled module's text (benchmarks.profile --by source); compiles again.
+  call.hlo_text = lambda: loop._update.lower(
+      agents[0], buffers, keys, **update.keywords).compile().as_text()
   return call, config, size
 
 

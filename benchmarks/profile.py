@@ -4,8 +4,10 @@
 under `jax.profiler.trace` and `summarise(events)` reads the Perfetto trace that JAX
 writes (`perfetto_trace.json.gz`, `load_trace`): the events of the device's streams
 (processes named ``/device:GPU:…``), grouped by XLA op (the kernel event's
-``hlo_op``), by kind of op or by kernel name, with calls, total and mean time and
-share of the traced device time.
+``hlo_op``), by kind of op, by kernel name or by the Python source of the op
+(``--by source``: file, line and function of the op and its two callers, read from
+the compiled module's stack-frame tables, `hlo_sources`), with calls, total and mean
+time and share of the traced device time.
 On a CPU-only machine there are no device processes; XLA's CPU worker threads
 stand in (the rows are then host-side op events, coarse but enough for tests).
 
@@ -70,19 +72,71 @@ def device_events(events: Sequence[dict]) -> tuple[list[dict], str]:
           and not e["name"].startswith(HOST_WRAPPER_PREFIXES)], "host threads"
 
 
-GROUPINGS = ("op", "category", "kernel")
+GROUPINGS = ("op", "category", "kernel", "source")
 """How `summarise` groups events (``--by``)."""
 
 
-def summarise(events: Sequence[dict], by: str = "op", top: int = 30) -> dict[str, Any]:
+def _hlo_table(text: str, name: str) -> dict[int, str]:
+  """One of the numbered tables a compiled HLO module's text ends with (FileNames,
+  FunctionNames, FileLocations, StackFrames): {id: the rest of its line}."""
+  match = re.search(rf"^{name}\n(.*?)(?:\n\n|\Z)", text, re.S | re.M)
+  rows = {}
+  for line in (match.group(1).splitlines() if match else []):
+    head, _, rest = line.partition(" ")
+    if head.isdigit():
+      rows[int(head)] = rest.strip().strip('"')
+  return rows
+
+
+def hlo_sources(text: str, depth: int = 3) -> dict[str, str]:
+  """Python source of each instruction of a compiled HLO module (`Compiled.as_text()`).
+
+  Each instruction's metadata names a stack frame; frames chain to their callers
+  (the text prints a frame's parent id plus one, 0 for none). The label holds the
+  innermost `depth` frames, innermost first: ``"jax_render.py:92 _dot ← 115
+  _sphere_t ← 166 intersect"`` (the file is named once, where it changes).
+
+  Returns:
+    {instruction name (as a trace's ``hlo_op``): label}; instructions without a
+    stack frame are left out.
+  """
+  files, funcs = _hlo_table(text, "FileNames"), _hlo_table(text, "FunctionNames")
+  locs = {i: dict(re.findall(r"(\w+)=(\d+)", v))
+          for i, v in _hlo_table(text, "FileLocations").items()}
+  frames = {i: dict(re.findall(r"(\w+)=(\d+)", v))
+            for i, v in _hlo_table(text, "StackFrames").items()}
+
+  def label(frame_id: int) -> str:
+    parts, last_file, seen = [], None, set()
+    while frame_id in frames and frame_id not in seen and len(parts) < depth:
+      seen.add(frame_id)
+      loc = locs.get(int(frames[frame_id].get("file_location_id", 0)), {})
+      file = os.path.basename(files.get(int(loc.get("file_name_id", 0)), "?"))
+      func = funcs.get(int(loc.get("function_name_id", 0)), "?").split(".")[-1]
+      where = f"{file}:{loc.get('line', '?')}" if file != last_file else loc.get("line", "?")
+      parts.append(f"{where} {func}")
+      last_file = file
+      frame_id = int(frames[frame_id].get("parent_frame_id", 0)) - 1
+    return " ← ".join(parts)
+
+  sources = {}
+  for name, frame in re.findall(r"^\s*(?:ROOT )?%(\S+) = .*?stack_frame_id=(\d+)", text, re.M):
+    sources[name] = label(int(frame))
+  return sources
+
+
+def summarise(events: Sequence[dict], by: str = "op", top: int = 30,
+              sources: dict[str, str] | None = None) -> dict[str, Any]:
   """Per group, calls and time of the traced device events.
 
   Args:
     events: a trace's events (`load_trace`).
     by: "op" groups by the event's ``hlo_op`` argument (falling back to its name),
       "category" by that op name without its ".N" suffix ("fusion", "custom-call",
-      …), "kernel" by the event's name.
+      …), "kernel" by the event's name, "source" by the Python source of the op
+      (`sources`; ops it lacks are grouped as "<op> (no source)").
     top: rows kept, longest total first.
+    sources: for "source", `hlo_sources` of the profiled computation.
 
   Returns:
     {"source": "device" | "host threads", "total_ms": all traced time,
@@ -95,8 +149,10 @@ def summarise(events: Sequence[dict], by: str = "op", top: int = 30) -> dict[str
   calls: dict[str, int] = collections.Counter()
   for e in picked:
     name = e["name"]
-    if by in ("op", "category"):
+    if by in ("op", "category", "source"):
       name = (e.get("args") or {}).get("hlo_op", name)
+    if by == "source":
+      name = (sources or {}).get(name, f"{name} (no source)")
     if by == "category":
       name = re.sub(r"\.\d+$", "", name)
     totals[name] += e["dur"]
@@ -115,7 +171,7 @@ def markdown(summary: dict[str, Any], title: str = "") -> str:
            f"{summary['groups']} groups (top {len(summary['rows'])} below).", "",
            "| op / kernel | calls | total ms | mean µs | share |", "|---|---:|---:|---:|---:|"]
   for r in summary["rows"]:
-    name = r["name"] if len(r["name"]) <= 90 else r["name"][:87] + "…"
+    name = r["name"] if len(r["name"]) <= 100 else r["name"][:97] + "…"
     lines.append(f"| `{name}` | {r['calls']:,} | {r['total_ms']:,.2f} | {r['mean_us']:,.1f} "
                  f"| {r['share']:.1%} |")
   return "\n".join(lines).lstrip("\n") + "\n"
@@ -149,7 +205,9 @@ def render_workload(task: str, batch: int, chunk: int, size: int) -> Callable[[]
   scene, bp, looks = inputs(task, batch)
   fn = jax.jit(functools.partial(JR.render_batch, scene, chunk=chunk or None,
                                  height=size, width=size))
-  return lambda: fn(bp, looks)
+  call = lambda: fn(bp, looks)
+  call.hlo_text = lambda: fn.lower(bp, looks).compile().as_text()
+  return call
 
 
 def main(argv=None) -> None:
@@ -195,7 +253,8 @@ def main(argv=None) -> None:
   compile_s = time.perf_counter() - t0
   jax.block_until_ready(call())  # warm
   trace = profile_call(call, args.out, args.calls)
-  summary = summarise(load_trace(trace), by=args.by, top=args.top)
+  sources = hlo_sources(call.hlo_text()) if args.by == "source" else None
+  summary = summarise(load_trace(trace), by=args.by, top=args.top, sources=sources)
   device = getattr(jax.devices()[0], "device_kind", jax.default_backend())
   summary.update(workload=what, device=device, calls=args.calls, compile_s=compile_s,
                  trace=os.path.relpath(trace, args.out),

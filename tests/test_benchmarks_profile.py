@@ -83,3 +83,29 @@ def test_command_rejects_bad_sizes(tmp_path, capsys):
   with pytest.raises(SystemExit):
     P.main(["learner", "--by", "name", "--out", str(tmp_path)])
   assert "invalid choice: 'name'" in capsys.readouterr().err
+
+
+def _inner(x):
+  return jnp.sin(x) * jnp.cos(x)  # the op whose source the labels must name
+
+
+def _outer(x):
+  return _inner(x) + 1.0
+
+
+def test_hlo_sources_name_the_python_lines_of_compiled_ops():
+  import inspect
+  text = jax.jit(_outer).lower(jnp.ones((64,))).compile().as_text()
+  sources = {k: v for k, v in P.hlo_sources(text).items() if k != "fusion.3"}
+  inner_line = inspect.getsourcelines(_inner)[1] + 1
+  outer_line = inspect.getsourcelines(_outer)[1] + 1
+  labels = set(sources.values())
+  assert any(lab.startswith(f"test_benchmarks_profile.py:{inner_line} _inner ← {outer_line} _outer")
+             for lab in labels), labels
+  # grouping a trace by source: ops it knows get their label, the rest say so
+  op = next(n for n, lab in sources.items() if lab.startswith("test_benchmarks_profile.py"))
+  events = _gpu_trace() + [{"ph": "X", "pid": 7, "tid": 2, "ts": 200, "dur": 5.0,
+                            "name": "k", "args": {"hlo_op": op}}]
+  rows = {r["name"]: r for r in P.summarise(events, by="source", sources=sources)["rows"]}
+  assert rows[sources[op]]["calls"] == 1
+  assert rows["fusion.3 (no source)"]["calls"] == 2
