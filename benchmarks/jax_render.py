@@ -171,11 +171,11 @@ def markdown_env(rows: list[dict]) -> str:
 
 def markdown(rows: list[dict]) -> str:
   lines = ["| device | task | size | batch | chunk | shadows | reflection | compile s | "
-           "frames/s |", "|---|---|---:|---:|---:|---|---|---:|---:|"]
+           "frames/s | label |", "|---|---|---:|---:|---:|---|---|---:|---:|---|"]
   for r in rows:
     lines.append(f"| {r['device']} | {r['task']} | {r['size']} | {r['batch']:,} | "
                  f"{r['chunk'] or '–'} | {r['shadows']} | {r['reflection']} | "
-                 f"{r['compile_s']:.1f} | {r['frames_per_s']:,.0f} |")
+                 f"{r['compile_s']:.1f} | {r['frames_per_s']:,.0f} | {r.get('label', '')} |")
   return "\n".join(lines) + "\n"
 
 
@@ -197,12 +197,16 @@ def main(argv=None) -> None:
   p.add_argument("--ls-iterations", type=int, default=None,
                  help="--mode env: MJX line-search cap (default: the task's, 16)")
   p.add_argument("--out", default=None)
+  p.add_argument("--label", default=None,
+                 help="a note stored in every row (e.g. the code version measured)")
   args = p.parse_args(argv)
   import jax
   env_mode = args.mode == "env"
   common = dict(bench="jax_env" if env_mode else "jax_render", device=_device(),
                 backend=jax.default_backend(), cpus=os.cpu_count(), host=platform.node(),
                 task=args.task, size=args.size, vary="all")
+  if args.label:
+    common["label"] = args.label
   rows = []
   for n in [int(b) for b in args.batches.split(",")]:
     flags = (not args.no_shadows, not args.no_reflection)

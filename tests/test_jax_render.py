@@ -89,6 +89,33 @@ def test_intersections_match_numpy(typ, size):
   np.testing.assert_allclose(got[both], want[both], atol=2e-3)
 
 
+@pytest.mark.parametrize("unit", [False, True])
+def test_capsule_from_every_side(unit):
+  """Rays from all around a capsule, some along its axis, against the NumPy march:
+  the capsule tests one end sphere, chosen from where the ray meets its cylinder."""
+  rng = np.random.default_rng(1)
+  size = np.array([0.3, 0.8, 0.0])
+  o = rng.normal(size=(300, 3))
+  o *= 2.5 / np.linalg.norm(o, axis=-1, keepdims=True)
+  d = rng.uniform(-0.5, 0.5, size=(300, 3)) * [1, 1, 2] - o
+  axis = np.array([[0, 0, 2.0], [0, 0, -2.0], [0.1, 0, 2.0], [0, 0.2, -2.0], [0, 0, 2.0]])
+  o = np.concatenate([o, axis])
+  d = np.concatenate([d, [[0, 0, -1.0], [0, 0, 1.0], [0, 0, -1.0], [0, 0, 1.0], [0, 0, 1]]])
+  d /= np.linalg.norm(d, axis=-1, keepdims=True)
+  want = _numpy_hit(JS.CAPSULE, o, d, size)
+  got = np.asarray(JR.intersect(JS.CAPSULE, jnp.asarray(o, jnp.float32),
+                                jnp.asarray(d, jnp.float32), jnp.asarray(size, jnp.float32),
+                                unit=unit))
+  hit = np.isfinite(want)
+  assert 100 < hit.sum() < len(o)
+  assert ((got < JR.INF) == hit).mean() > 0.98
+  both = hit & (got < JR.INF)
+  np.testing.assert_allclose(got[both], want[both], atol=2e-3)
+  # along the axis: the near end's pole (t = 2 − 0.8 − 0.3), and a ray leaving it misses
+  np.testing.assert_allclose(got[-5:-3], 0.9, atol=1e-5)
+  assert got[-1] == JR.INF
+
+
 def test_plane_front_side_and_extent():
   o = jnp.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [0.0, 0, 1.0]])
   d = jnp.array([[0.0, 0.0, -1.0], [0.6, 0.0, -0.8], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
