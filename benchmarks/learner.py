@@ -17,6 +17,8 @@ as a PyTorch-style loop does.
 Compile time and run time are reported apart; the run time is the median of
 several calls (each ended by ``block_until_ready``) over at least ``--seconds``.
 Rows go to ``--out`` (JSON lines, appended) and a Markdown table beside it.
+``--cost`` instead prints XLA's cost analysis of one update (GFLOP and GB accessed,
+from the compiled module; nothing runs), which turns updates/s into FLOP/s.
 
 Usage::
 
@@ -193,6 +195,25 @@ def markdown(rows: list[dict]) -> str:
   return "\n".join(lines) + "\n"
 
 
+def update_cost(dtype: str = "float32", algo: str = "sac_aug", batch: int | None = None,
+                size: int = 84, stack: int = 3, action_size: int = 6) -> dict:
+  """XLA's cost analysis of one agent's update pair (`loop._update`, one pair per
+  call) on the default backend, halved: floating-point operations and bytes
+  accessed per gradient update. Compiles once; runs nothing."""
+  config = sac.SACConfig(algo=algo, batch_size=batch, compute_dtype=dtype,
+                         **({"curl_crop": size} if algo == "curl" else {}))
+  side = size + 16 if algo == "curl" else size
+  agents = _agents(1, (side, side, 3 * stack), action_size, config)
+  buffers = filled_buffers(1, 4 * config.batch_size, side, stack, action_size)
+  keys = jax.random.split(jax.random.key(1), 1)
+  cost = loop._update.lower(agents, buffers, keys, pairs=1, config=config,
+                            agent_loop="vmap").compile().cost_analysis()
+  cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+  return dict(kind="cost", algo=algo, dtype=dtype, batch=config.batch_size, frame_side=side,
+              gflop_per_update=round(cost["flops"] / 2e9, 2),
+              gbytes_per_update=round(cost["bytes accessed"] / 2e9, 2))
+
+
 def main(argv=None) -> None:
   """Command-line entry: the rows, appended to --out, and the Markdown table."""
   p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -212,6 +233,10 @@ def main(argv=None) -> None:
   p.add_argument("--capacity", type=int, default=10_000, help="buffer rows per agent")
   p.add_argument("--seconds", type=float, default=3.0)
   p.add_argument("--no-baseline", action="store_true")
+  p.add_argument("--cost", action="store_true",
+                 help="only print XLA's cost analysis (GFLOP and GB per update) of each "
+                      "algorithm and dtype, one JSON line each, and stop (nothing is timed "
+                      "or written)")
   p.add_argument("--out", default=None,
                  help="JSONL (default benchmarks/results/learner_<device>.jsonl)")
   a = p.parse_args(argv)
@@ -230,6 +255,12 @@ def main(argv=None) -> None:
   for name in a.loops.split(","):
     if name not in loop.AGENT_LOOPS:
       p.error(f"--loops: {name!r} is not one of {', '.join(loop.AGENT_LOOPS)}")
+  if a.cost:
+    for algo in a.algos.split(","):
+      for dtype in a.dtypes.split(","):
+        print(json.dumps(update_cost(dtype, algo, a.batch, a.size, a.stack, a.action_size)),
+              flush=True)
+    return
   device = jax.devices()[0]
   out = a.out or os.path.join("benchmarks", "results",
                               f"learner_{device_slug(device)}.jsonl")
