@@ -124,16 +124,24 @@ def _sphere_t(o, d, r, unit: bool = False):
   return jnp.where((disc >= 0) & (t > _EPS), t, INF)
 
 
-def _side_t(o, d, r, h):
-  """Entry distance into the side of a z-axis cylinder of radius r, |z| ≤ h."""
+def _side_hit(o, d, r, h):
+  """Where rays enter the side of a z-axis cylinder of radius r, |z| ≤ h: the
+  entry distance t into the infinite cylinder, its height z there, whether that
+  is a hit on the side, and whether the ray is slanted (not along the axis)."""
   a = d[..., 0] ** 2 + d[..., 1] ** 2
   b = o[..., 0] * d[..., 0] + o[..., 1] * d[..., 1]
   c = o[..., 0] ** 2 + o[..., 1] ** 2 - r * r
   disc = b * b - a * c
-  safe_a = jnp.where(a > 1e-12, a, 1.0)
-  t = (-b - jnp.sqrt(jnp.maximum(disc, 0.0))) / safe_a
+  slanted = a > 1e-12
+  t = (-b - jnp.sqrt(jnp.maximum(disc, 0.0))) / jnp.where(slanted, a, 1.0)
   z = o[..., 2] + t * d[..., 2]
-  return jnp.where((a > 1e-12) & (disc >= 0) & (t > _EPS) & (jnp.abs(z) <= h), t, INF)
+  return t, z, slanted & (disc >= 0) & (t > _EPS) & (jnp.abs(z) <= h), slanted
+
+
+def _side_t(o, d, r, h):
+  """Entry distance into the side of a z-axis cylinder of radius r, |z| ≤ h."""
+  t, _, side, _ = _side_hit(o, d, r, h)
+  return jnp.where(side, t, INF)
 
 
 def _capsule_t(o, d, r, h, unit: bool = False):
@@ -142,14 +150,7 @@ def _capsule_t(o, d, r, h, unit: bool = False):
   One end sphere is tested, not both: a ray that enters the capsule's infinite
   cylinder beyond one end of the segment can only enter the capsule through that
   end's hemisphere (rays along the axis: the end facing the ray's origin)."""
-  a = d[..., 0] ** 2 + d[..., 1] ** 2
-  b = o[..., 0] * d[..., 0] + o[..., 1] * d[..., 1]
-  c = o[..., 0] ** 2 + o[..., 1] ** 2 - r * r
-  disc = b * b - a * c
-  slanted = a > 1e-12
-  t = (-b - jnp.sqrt(jnp.maximum(disc, 0.0))) / jnp.where(slanted, a, 1.0)
-  z = o[..., 2] + t * d[..., 2]
-  side = slanted & (disc >= 0) & (t > _EPS) & (jnp.abs(z) <= h)
+  t, z, side, slanted = _side_hit(o, d, r, h)
   end = jnp.where(jnp.where(slanted, z > 0, d[..., 2] < 0), h, -h)
   shifted = o - jnp.stack([jnp.zeros_like(end), jnp.zeros_like(end), end], -1)
   return jnp.where(side, t, _sphere_t(shifted, d, r, unit))
