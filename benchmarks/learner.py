@@ -108,9 +108,11 @@ def scanned_workload(k: int = 1, dtype: str = "float32", agent_loop: str = "vmap
   def call():
     agents[0] = update(agents[0], buffers, keys)[0]
     return agents[0]
-  # The compiled module's text (benchmarks.profile --by source); compiles again.
-  call.hlo_text = lambda: loop._update.lower(
-      agents[0], buffers, keys, **update.keywords).compile().as_text()
+  # The compiled module (its text for benchmarks.profile --by source, its cost for
+  # --cost); compiles again.
+  call.compiled = lambda: loop._update.lower(
+      agents[0], buffers, keys, **update.keywords).compile()
+  call.hlo_text = lambda: call.compiled().as_text()
   return call, config, size
 
 
@@ -197,17 +199,13 @@ def markdown(rows: list[dict]) -> str:
 
 def update_cost(dtype: str = "float32", algo: str = "sac_aug", batch: int | None = None,
                 size: int = 84, stack: int = 3, action_size: int = 6) -> dict:
-  """XLA's cost analysis of one agent's update pair (`loop._update`, one pair per
-  call) on the default backend, halved: floating-point operations and bytes
-  accessed per gradient update. Compiles once; runs nothing."""
-  config = sac.SACConfig(algo=algo, batch_size=batch, compute_dtype=dtype,
-                         **({"curl_crop": size} if algo == "curl" else {}))
-  side = size + 16 if algo == "curl" else size
-  agents = _agents(1, (side, side, 3 * stack), action_size, config)
-  buffers = filled_buffers(1, 4 * config.batch_size, side, stack, action_size)
-  keys = jax.random.split(jax.random.key(1), 1)
-  cost = loop._update.lower(agents, buffers, keys, pairs=1, config=config,
-                            agent_loop="vmap").compile().cost_analysis()
+  """XLA's cost analysis of one agent's update pair (`scanned_workload` with one
+  pair per call) on the default backend, halved: floating-point operations and
+  bytes accessed per gradient update. Compiles once; runs nothing."""
+  batch = batch or sac.SACConfig(algo=algo).batch_size
+  call, config, side = scanned_workload(1, dtype, "vmap", batch, 1, size, stack,
+                                        action_size, 4 * batch, algo)
+  cost = call.compiled().cost_analysis()
   cost = cost[0] if isinstance(cost, (list, tuple)) else cost
   return dict(kind="cost", algo=algo, dtype=dtype, batch=config.batch_size, frame_side=side,
               gflop_per_update=round(cost["flops"] / 2e9, 2),
