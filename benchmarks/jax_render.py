@@ -19,9 +19,9 @@ observations left on the device, `info` fetched to the host) and the pure
 `train.device_loop` drives it: no host work between steps), each the median of
 `--repeats` timed runs of `--steps` (resp. `--scan-steps`) steps.
 
-    python -m benchmarks.jax_render --batches 1024,4096,16384 \\
+    python -m benchmarks.jax_render --batches 1024,4096,16384 --chunk 256 \\
         --out benchmarks/results/jax_render_h100.jsonl
-    python -m benchmarks.jax_render --mode env --batches 1024,4096,16384 --chunk 1024 \\
+    python -m benchmarks.jax_render --mode env --batches 1024,4096,16384 --chunk 256 \\
         --out benchmarks/results/jax_env_h100.jsonl
 
 One JSON line per row (device, backend, sizes, compile and run seconds,

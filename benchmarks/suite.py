@@ -128,11 +128,11 @@ _PLANS: dict[str, dict[str, list[tuple[str, str, tuple[str, ...]]]]] = {
                     "--ls-iterations", "4", "--no-copy", "--seconds", "3",
                     "--original-steps", "50"))],
         "jax_render": [("", "benchmarks.jax_render", (
-            "--batches", "1024,4096,16384", "--chunk", "1024")),
+            "--batches", "1024,4096,16384", "--chunk", "256")),
                        ("-env", "benchmarks.jax_render", (
             # ~2 min of compilation per size: 4,096 envs only, to fit one device call
             # beside env-target (whose JAX row is the env at 1,024).
-            "--mode", "env", "--batches", "4096", "--chunk", "1024",
+            "--mode", "env", "--batches", "4096", "--chunk", "256",
             "--repeats", "2", "--steps", "5", "--scan-steps", "10"))],
         "augment": [("", "benchmarks.augment", ("--batch", "256")),
                     ("-b64", "benchmarks.augment", ("--batch", "64", "--names", "none,drq")),

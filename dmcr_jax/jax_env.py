@@ -53,9 +53,10 @@ from dmcr_jax.visuals.levels import SeedRange
 MAX_RANGE_LOOKS = 100_000
 """The largest `SeedRange` whose looks `make_env` precomputes (≈ 21 MB on device and
 ≈ 5 s of host work for walker)."""
-RENDER_CHUNK = 1024
+RENDER_CHUNK = 256
 """Default envs per vmapped render chunk above which `render_batch` maps over chunks
-(bounds the objects × pixels × envs distance arrays)."""
+(bounds memory; on the H100 chunks of 256 walker envs ran fastest of 64 … 1,024,
+results/jax_render_h100.md)."""
 
 
 @struct.dataclass

@@ -44,7 +44,12 @@ reacher (a spotlight low over the floor, which MuJoCo lights per vertex); per-bo
 silhouette IoU against MuJoCo's segmentation render ≥ 0.95 in 98.2–100 % of the
 frames where a body covers ≥ 50 pixels (mean ≥ 0.992 per domain); small bodies of
 10–50 pixels lose one or two edge pixels of a tessellated sphere or ellipsoid
-(IoU down to 0.79).
+(IoU down to 0.78).
+
+Speed (benchmarks/results/jax_render_h100.md): on a GPU the nearest hits are running
+minima over the objects and `render_batch` is best run in chunks of ~256 envs (H100,
+walker, 84×84, shadows and reflection: ~120,000 frames/s); on the CPU the same hits are
+taken from stacked distances (`running_minima`; both forms give the same frames).
 
 Used by `dmcr_jax.make(..., renderer="jax")` (`dmcr_jax.jax_env`: physics, this
 renderer and frame stacks in one jitted call) and `train --renderer jax`.
@@ -89,7 +94,15 @@ MIP_COS_POWER = 1.0     # MuJoCo: rgba alpha < 0.995 is drawn as transparent
 
 
 def _dot(a, b):
-  return jnp.sum(a * b, axis=-1)
+  """Dot products of 3-vectors along the last axis, written out: a sum over a
+  length-3 axis is a reduction, which ends an XLA GPU fusion (H100, walker, 4,096
+  envs in chunks of 256, with running minima: 124,839 frames/s against 90,108)."""
+  return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
+def _norm(v, keepdims: bool = False):
+  n = jnp.sqrt(_dot(v, v))
+  return n[..., None] if keepdims else n
 
 
 # Rays rotated into each object's frame with the 3-vector products written out: as
@@ -107,6 +120,18 @@ def _vec_mat(v, m):
 def _mat_vec(m, v):
   """``m @ v`` for 3×3 matrices ``m`` (..., 3, 3) and 3-vectors ``v`` (..., 3)."""
   return m[..., :, 0] * v[..., 0:1] + m[..., :, 1] * v[..., 1:2] + m[..., :, 2] * v[..., 2:3]
+
+
+# Frames of objects, the camera and lights are written out too: as batched matrix
+# products a GPU computes them in TensorFloat-32 (XLA's default precision for float32
+# dots), whose 10-bit mantissa moved silhouette edges (H100 against the CPU, 32 random
+# humanoid frames at 84×84, vmapped: 2,764 of 225,792 id pixels differed, 4 after).
+
+
+def _mat_mat(a, b):
+  """``a @ b`` for 3×3 matrices (..., 3, 3), in full float32 on every backend."""
+  return (a[..., :, 0:1] * b[..., 0:1, :] + a[..., :, 1:2] * b[..., 1:2, :]
+          + a[..., :, 2:3] * b[..., 2:3, :])
 
 
 def _sphere_t(o, d, r, unit: bool = False):
@@ -205,8 +230,9 @@ def intersect(typ: int, o: jax.Array, d: jax.Array, size: jax.Array,
     inv = 1.0 / safe
     t1 = (-size - o) * inv
     t2 = (size - o) * inv
-    tn = jnp.max(jnp.minimum(t1, t2), axis=-1)
-    tf = jnp.min(jnp.maximum(t1, t2), axis=-1)
+    lo, hi = jnp.minimum(t1, t2), jnp.maximum(t1, t2)
+    tn = jnp.maximum(jnp.maximum(lo[..., 0], lo[..., 1]), lo[..., 2])
+    tf = jnp.minimum(jnp.minimum(hi[..., 0], hi[..., 1]), hi[..., 2])
     return jnp.where((tn <= tf) & (tn > _EPS), tn, INF)
   raise NotImplementedError(f"geom type {typ}")
 
@@ -224,8 +250,10 @@ def _normal_local(typ: jax.Array, p: jax.Array, size: jax.Array) -> jax.Array:
       [jnp.zeros_like(p[..., :2]), jnp.sign(p[..., 2:3])], -1),
       jnp.concatenate([p[..., :2], jnp.zeros_like(p[..., 2:3])], -1))
   q = jnp.abs(p) / jnp.maximum(size, 1e-12)
-  axis = jnp.argmax(q, axis=-1)
-  box = jax.nn.one_hot(axis, 3, dtype=p.dtype) * jnp.sign(p)
+  qx, qy, qz = q[..., 0:1], q[..., 1:2], q[..., 2:3]
+  x_axis = (qx >= qy) & (qx >= qz)              # argmax's choice: first of ties
+  y_axis = ~x_axis & (qy >= qz)
+  box = jnp.concatenate([x_axis, y_axis, ~x_axis & ~y_axis], -1).astype(p.dtype) * jnp.sign(p)
   plane = jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0], p.dtype), p.shape)
   t = typ[..., None]
   n = jnp.where(t == SPHERE, sphere, plane)
@@ -233,7 +261,7 @@ def _normal_local(typ: jax.Array, p: jax.Array, size: jax.Array) -> jax.Array:
   n = jnp.where(t == CAPSULE, capsule, n)
   n = jnp.where(t == CYLINDER, cylinder, n)
   n = jnp.where(t == BOX, box, n)
-  return n / jnp.maximum(jnp.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+  return n / jnp.maximum(_norm(n, keepdims=True), 1e-12)
 
 
 # ---------------------------------------------------------------------------
@@ -261,8 +289,8 @@ def camera_frame(scene: Scene, bp: BodyPoses, look: DeviceLook):
   b = scene.cam_body
   if scene.cam_mode == 0:
     rot = _quat_to_mat(src.cam_quat)
-    pos = bp.xpos[b] + bp.xmat[b] @ src.cam_pos
-    return pos, bp.xmat[b] @ rot
+    pos = bp.xpos[b] + _mat_vec(bp.xmat[b], src.cam_pos)
+    return pos, _mat_mat(bp.xmat[b], rot)
   mat = src.cam_mat0.reshape(3, 3)
   if scene.cam_mode == 1:
     return bp.xpos[b] + src.cam_pos0, mat
@@ -280,7 +308,7 @@ def _lights(scene: Scene, bp: BodyPoses, look: DeviceLook):
     lc0 = look.light_poscom0 if looked else scene.light_poscom0[l]
     ld0 = look.light_dir0 if looked else scene.light_dir0[l]
     if mode == 0:
-      p, dvec = bp.xpos[b] + bp.xmat[b] @ lp, bp.xmat[b] @ ld
+      p, dvec = bp.xpos[b] + _mat_vec(bp.xmat[b], lp), _mat_vec(bp.xmat[b], ld)
     elif mode == 1:
       p, dvec = bp.xpos[b] + lp0, ld0
     else:
@@ -309,8 +337,8 @@ def _objects(scene: Scene, bp: BodyPoses, look: DeviceLook,
       use_mat = (scene.mat_slot[k] >= 0) & jnp.all(value == default)
       rgba = rgba.at[k].set(jnp.where(use_mat, rgba[k], value))
   xmat = bp.xmat[scene.body]                               # (K, 3, 3)
-  pos = bp.xpos[scene.body] + jnp.einsum("kij,kj->ki", xmat, local_pos)
-  mat = jnp.einsum("kij,kjl->kil", xmat, scene.local_mat)
+  pos = bp.xpos[scene.body] + _mat_vec(xmat, local_pos)
+  mat = _mat_mat(xmat, scene.local_mat)
   # sphere size convention: r in size[0]; planes keep their half-extents
   return pos, mat, size, rgba
 
@@ -320,6 +348,80 @@ def _objects(scene: Scene, bp: BodyPoses, look: DeviceLook,
 # ---------------------------------------------------------------------------
 
 
+# Nearest hits come in two forms, chosen by backend (`running_minima`), with the
+# same result (ties go to the lower object index in both; tested): on a GPU, a
+# running minimum folded in object by object, which keeps each trace in registers
+# instead of writing a (K, P) array of distances and reducing it (H100, walker,
+# 4,096 envs in chunks of 256, an A/B with dots and rotations written out in both:
+# 116,586 frames/s against 99,610; jax_render_h100.md); on XLA's CPU
+# backend, which runs the long select chains several times slower (2-core CPU, walker,
+# 64 envs: 14 against 102 frames/s, jax_render_cpu.md), the stacked distances and argmin.
+
+
+def running_minima() -> bool:
+  """Whether renders traced now use the running-minimum form (default backend
+  is not the CPU)."""
+  return jax.default_backend() != "cpu"
+
+
+def _local_t(typ, o, d, p, m, size, visible):
+  """Distance of unit world rays to one object at position p with frame m."""
+  t = intersect(typ, _vec_mat(o - p, m), _vec_mat(d, m), size, unit=True)
+  return jnp.where(visible, t, INF)
+
+
+def _nearest(scene: Scene, pos, mat, size, visible, o, d, *, running: bool, skip=None):
+  """Nearest hit (t, k) of rays over the objects (`INF`, 0 where none); `skip`
+  leaves one object out."""
+  if not running:
+    ts = _trace(scene, pos, mat, size, visible, o, d, skip)
+    return jnp.min(ts, 0), jnp.argmin(ts, 0)
+  t_best = jnp.full(o.shape[:-1], INF)
+  k_best = jnp.zeros(o.shape[:-1], jnp.int32)
+  for k, typ in enumerate(scene.types):
+    if k != skip:
+      t = _local_t(typ, o, d, pos[k], mat[k], size[k], visible[k])
+      closer = t < t_best
+      t_best, k_best = jnp.where(closer, t, t_best), jnp.where(closer, k, k_best)
+  return t_best, k_best
+
+
+def _primary(scene: Scene, pos, mat, size, visible, opaque, o, d, dz, *, running: bool):
+  """What primary rays see: the nearest opaque hit (t, k), the nearest object of
+  any kind (segmentation, −1 where none) and the two nearest transparent hits
+  (t, k) in front of the opaque one (`INF` where none)."""
+  if not running:
+    ts = _trace(scene, pos, mat, size, visible, o, d)              # (K, P)
+    ts = jnp.where(ts * -dz[None] < scene.znear, INF, ts)         # near clip plane
+    t_op = jnp.where(opaque[:, None], ts, INF)
+    k_o, t_o = jnp.argmin(t_op, axis=0), jnp.min(t_op, axis=0)
+    seg = jnp.where(jnp.min(ts, 0) < INF, jnp.argmin(ts, axis=0), -1)
+    t_tr = jnp.where((~opaque[:, None]) & (ts < t_o[None]), ts, INF)
+    k_1, t_1 = jnp.argmin(t_tr, axis=0), jnp.min(t_tr, axis=0)
+    t_tr2 = jnp.where(jnp.arange(scene.num_objects)[:, None] == k_1[None], INF, t_tr)
+    k_2, t_2 = jnp.argmin(t_tr2, axis=0), jnp.min(t_tr2, axis=0)
+    return (t_o, k_o), seg, (t_1, k_1), (t_2, k_2)
+  inf = jnp.full(o.shape[:-1], INF)
+  zero = jnp.zeros(o.shape[:-1], jnp.int32)
+  t_o, k_o, t_a, k_a, t_1, k_1, t_2, k_2 = inf, zero, inf, zero, inf, zero, inf, zero
+  for k, typ in enumerate(scene.types):
+    t = _local_t(typ, o, d, pos[k], mat[k], size[k], visible[k])
+    t = jnp.where(t * -dz < scene.znear, INF, t)                   # near clip plane
+    c = t < t_a
+    t_a, k_a = jnp.where(c, t, t_a), jnp.where(c, k, k_a)
+    tk = jnp.where(opaque[k], t, INF)
+    c = tk < t_o
+    t_o, k_o = jnp.where(c, tk, t_o), jnp.where(c, k, k_o)
+    tk = jnp.where(opaque[k], INF, t)
+    first, second = tk < t_1, (tk >= t_1) & (tk < t_2)
+    t_2 = jnp.where(first, t_1, jnp.where(second, tk, t_2))
+    k_2 = jnp.where(first, k_1, jnp.where(second, k, k_2))
+    t_1, k_1 = jnp.where(first, tk, t_1), jnp.where(first, k, k_1)
+  # the two nearest transparent hits overall, kept only in front of the opaque one
+  t_1, t_2 = jnp.where(t_1 < t_o, t_1, INF), jnp.where(t_2 < t_o, t_2, INF)
+  return (t_o, k_o), jnp.where(t_a < INF, k_a, -1), (t_1, k_1), (t_2, k_2)
+
+
 def _trace(scene: Scene, pos, mat, size, visible, o, d, skip=None):
   """Distances of rays to every object: (K, P) array (`INF` = miss)."""
   ts = []
@@ -327,10 +429,7 @@ def _trace(scene: Scene, pos, mat, size, visible, o, d, skip=None):
     if skip is not None and k == skip:
       ts.append(jnp.full(o.shape[:-1], INF))
       continue
-    ol = _vec_mat(o - pos[k], mat[k])
-    dl = _vec_mat(d, mat[k])
-    t = intersect(typ, ol, dl, size[k], unit=True)    # every traced ray is unit
-    ts.append(jnp.where(visible[k], t, INF))
+    ts.append(_local_t(typ, o, d, pos[k], mat[k], size[k], visible[k]))
   return jnp.stack(ts)
 
 
@@ -357,16 +456,16 @@ def _shade(n, p, v, rgb_scale, base_rgba, spec, shin, emis, lights):
       factor = jnp.ones(p.shape[:-1] + (1,))
     else:
       to = lpos - p
-      dist = jnp.linalg.norm(to, axis=-1, keepdims=True)
+      dist = _norm(to, keepdims=True)
       L = to / jnp.maximum(dist, 1e-12)
-      cos = jnp.sum(-L * ldir, axis=-1, keepdims=True)
+      cos = -_dot(L, ldir)[..., None]
       spot = jnp.where(cos >= jnp.cos(jnp.deg2rad(cut)),
                        jnp.maximum(cos, 0.0) ** ex, 0.0)
       factor = spot / (att[0] + att[1] * dist + att[2] * dist * dist)
-    ndl = jnp.sum(n * L, axis=-1, keepdims=True)
+    ndl = _dot(n, L)[..., None]
     hvec = L + v
-    hvec = hvec / jnp.maximum(jnp.linalg.norm(hvec, axis=-1, keepdims=True), 1e-12)
-    ndh = jnp.maximum(jnp.sum(n * hvec, axis=-1, keepdims=True), 0.0)
+    hvec = hvec / jnp.maximum(_norm(hvec, keepdims=True), 1e-12)
+    ndh = jnp.maximum(_dot(n, hvec)[..., None], 0.0)
     specular = jnp.where(ndl > 0, ndh ** expo, 0.0) * spc * spec[..., None]
     term = amb * rgb + jnp.maximum(ndl, 0.0) * dif * rgb + specular
     out = out + factor * on[..., None] * term
@@ -452,8 +551,10 @@ def _rays(scene: Scene, cam_pos, cam_mat, height: int, width: int, supersample: 
 
 
 def _render(scene: Scene, bp: BodyPoses, look: DeviceLook, variables, *, height, width,
-            shadows, reflection, supersample):
-  """Colour (P, 3) in [0, 1] and nearest object (P,) of one env (−1: none)."""
+            shadows, reflection, supersample, running=None):
+  """Colour (P, 3) in [0, 1] and nearest object (P,) of one env (−1: none);
+  `running`: the nearest-hit form (None: `running_minima()`)."""
+  running = running_minima() if running is None else running
   pos, mat, size, rgba = _objects(scene, bp, look, variables)
   alpha = rgba[:, 3]
   visible = alpha > 0
@@ -461,21 +562,8 @@ def _render(scene: Scene, bp: BodyPoses, look: DeviceLook, variables, *, height,
   cam_pos, cam_mat = camera_frame(scene, bp, look)
   d, dz = _rays(scene, cam_pos, cam_mat, height, width, supersample)
   o = jnp.broadcast_to(cam_pos, d.shape)
-  ts = _trace(scene, pos, mat, size, visible, o, d)            # (K, P)
-  ts = jnp.where(ts * -dz[None] < scene.znear, INF, ts)       # near clip plane
-  K = scene.num_objects
-  kk = jnp.arange(K)[:, None]
-  t_op = jnp.where(opaque[:, None], ts, INF)
-  k_op = jnp.argmin(t_op, axis=0)
-  t_o = jnp.min(t_op, axis=0)
-  seg = jnp.where(jnp.min(ts, 0) < INF, jnp.argmin(ts, axis=0), -1)
-  # two nearest transparent layers in front of the opaque surface
-  t_tr = jnp.where((~opaque[:, None]) & (ts < t_o[None]), ts, INF)
-  k_t1 = jnp.argmin(t_tr, axis=0)
-  t_1 = jnp.min(t_tr, axis=0)
-  t_tr2 = jnp.where(kk == k_t1[None], INF, t_tr)
-  k_t2 = jnp.argmin(t_tr2, axis=0)
-  t_2 = jnp.min(t_tr2, axis=0)
+  (t_o, k_op), seg, (t_1, k_t1), (t_2, k_t2) = _primary(
+      scene, pos, mat, size, visible, opaque, o, d, dz, running=running)
 
   lpos, ldir = _lights(scene, bp, look)
   head = ("dir", cam_pos, -cam_mat[:, 2], look.headlight[0], look.headlight[1],
@@ -532,12 +620,12 @@ def _render(scene: Scene, bp: BodyPoses, look: DeviceLook, variables, *, height,
         maxd = jnp.full(p.shape[:-1], INF)
       else:
         to = lpos[l] - p
-        maxd = jnp.linalg.norm(to, axis=-1)
+        maxd = _norm(to)
         to = to / jnp.maximum(maxd, 1e-12)[:, None]
       origin = p + 1e-4 * n
       casters = visible & ~scene.decor & (types != PLANE)
-      tt = _trace(scene, pos, mat, size, casters, origin, to)
-      vis.append((jnp.min(tt, 0) >= maxd).astype(jnp.float32))
+      tmin, _ = _nearest(scene, pos, mat, size, casters, origin, to, running=running)
+      vis.append((tmin >= maxd).astype(jnp.float32))
     return vis
 
   # ---- opaque surface
@@ -547,7 +635,7 @@ def _render(scene: Scene, bp: BodyPoses, look: DeviceLook, variables, *, height,
   floor_px = is_floor(k_op) & hit
   pix_angle = 2 * math.tan(math.radians(scene.fovy) / 2) / (height * supersample)
   if scene.floor_obj >= 0:
-    cos_in = jnp.maximum(jnp.abs(jnp.sum(d * n, -1)), 1e-3)
+    cos_in = jnp.maximum(jnp.abs(_dot(d, n)), 1e-3)
     footprint = (jnp.where(hit, t_o, 0.0) * pix_angle * (-dz) * MIP_SCALE
                  / cos_in ** MIP_COS_POWER)
     tex = jnp.where(floor_px[:, None], _floor_color(scene, look, pl, footprint, size[scene.floor_obj]), 1.0)
@@ -557,11 +645,10 @@ def _render(scene: Scene, bp: BodyPoses, look: DeviceLook, variables, *, height,
   color = lit(k_op, p, n, v, 1.0, vis, tex)
   if reflection and scene.floor_obj >= 0:
     fn = n
-    rd = d - 2 * jnp.sum(d * fn, -1, keepdims=True) * fn
+    rd = d - 2 * _dot(d, fn)[:, None] * fn
     ro = p + 1e-4 * fn
-    tr = _trace(scene, pos, mat, size, visible, ro, rd, skip=scene.floor_obj)
-    k_r = jnp.argmin(tr, 0)
-    t_r = jnp.min(tr, 0)
+    t_r, k_r = _nearest(scene, pos, mat, size, visible, ro, rd, running=running,
+                         skip=scene.floor_obj)
     rhit = (t_r < INF) & floor_px
     rp, _, rn = surface(k_r, jnp.where(rhit, t_r, 0.0), ro, rd)
     refl = look.floor_reflectance
@@ -646,8 +733,9 @@ def render_batch(scene: Scene, bp: BodyPoses, look: DeviceLook,
   Args:
     scene, bp, look, variables: as for `render`, batched (the scene is shared).
     chunk: if set, envs are rendered `chunk` at a time (`lax.map` over vmapped
-      chunks), bounding the memory of the per-object distance arrays
-      (objects × pixels × chunk floats); the batch size must be a multiple.
+      chunks; a remainder is one more, smaller chunk), which bounds memory and,
+      on a GPU, keeps a chunk's intermediate arrays in cache (H100, walker, 4,096
+      envs: 119,564 frames/s in chunks of 256 against 86,082 in chunks of 1,024).
     **kwargs: `render`'s static options (height, width, shadows, …).
 
   Returns:
