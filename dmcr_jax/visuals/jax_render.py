@@ -76,7 +76,7 @@ from dmcr_jax.visuals.jax_render_scene import (BOX, CAPSULE, CYLINDER, ELLIPSOID
                                                build_scene, device_looks, poses)
 
 __all__ = ["render", "render_batch", "render_with_ids", "build_scene", "device_looks",
-           "poses", "intersect", "camera_frame"]
+           "poses", "intersect", "camera_frame", "running_minima"]
 
 INF = 1e10
 _EPS = 1e-6
@@ -101,6 +101,7 @@ def _dot(a, b):
 
 
 def _norm(v, keepdims: bool = False):
+  """Lengths of 3-vectors along the last axis (`_dot`'s written-out form)."""
   n = jnp.sqrt(_dot(v, v))
   return n[..., None] if keepdims else n
 
