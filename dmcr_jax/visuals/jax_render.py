@@ -371,6 +371,13 @@ def _local_t(typ, o, d, p, m, size, visible):
   return jnp.where(visible, t, INF)
 
 
+def _fold(t, k: int, t_best, k_best):
+  """One step of a running minimum: (t, k) where t is nearer than t_best (ties
+  keep the earlier object, as argmin does)."""
+  closer = t < t_best
+  return jnp.where(closer, t, t_best), jnp.where(closer, k, k_best)
+
+
 def _nearest(scene: Scene, pos, mat, size, visible, o, d, *, running: bool, skip=None):
   """Nearest hit (t, k) of rays over the objects (`INF`, 0 where none); `skip`
   leaves one object out."""
@@ -382,8 +389,7 @@ def _nearest(scene: Scene, pos, mat, size, visible, o, d, *, running: bool, skip
   for k, typ in enumerate(scene.types):
     if k != skip:
       t = _local_t(typ, o, d, pos[k], mat[k], size[k], visible[k])
-      closer = t < t_best
-      t_best, k_best = jnp.where(closer, t, t_best), jnp.where(closer, k, k_best)
+      t_best, k_best = _fold(t, k, t_best, k_best)
   return t_best, k_best
 
 
@@ -408,11 +414,8 @@ def _primary(scene: Scene, pos, mat, size, visible, opaque, o, d, dz, *, running
   for k, typ in enumerate(scene.types):
     t = _local_t(typ, o, d, pos[k], mat[k], size[k], visible[k])
     t = jnp.where(t * -dz < scene.znear, INF, t)                   # near clip plane
-    c = t < t_a
-    t_a, k_a = jnp.where(c, t, t_a), jnp.where(c, k, k_a)
-    tk = jnp.where(opaque[k], t, INF)
-    c = tk < t_o
-    t_o, k_o = jnp.where(c, tk, t_o), jnp.where(c, k, k_o)
+    t_a, k_a = _fold(t, k, t_a, k_a)
+    t_o, k_o = _fold(jnp.where(opaque[k], t, INF), k, t_o, k_o)
     tk = jnp.where(opaque[k], INF, t)
     first, second = tk < t_1, (tk >= t_1) & (tk < t_2)
     t_2 = jnp.where(first, t_1, jnp.where(second, tk, t_2))
