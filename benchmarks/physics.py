@@ -12,6 +12,8 @@ compile), run time is the median of `--repeats` calls after `block_until_ready`.
 
     python -m benchmarks.physics --tasks walker-walk --sizes 8192 \
         --solver-iterations 1 --ls-iterations 4   # mjx.benchmark's solver budget
+    python -m benchmarks.physics --tasks walker-walk --sizes 8192 \
+        --matmul-precision highest   # float32 products, no TensorFloat-32 on a GPU
 
 Each row is one JSON line (device kind, task, N, steps, solver budget, compile_s,
 run_s, physics_steps_per_s, and the baseline's numbers); a Markdown table is
@@ -90,6 +92,7 @@ def _row(task: models.Task, n: int, k: int, parallel_compiles: int) -> dict:
       platform=jax.default_backend(), host=platform.node(), cpus=os.cpu_count(),
       task=task.name, num_envs=n, control_steps=k, n_sub_steps=task.n_sub_steps,
       solver_iterations=task.solver_iterations, ls_iterations=task.ls_iterations,
+      matmul_precision=jax.config.jax_default_matmul_precision or "default",
       concurrent_compiles=max(1, parallel_compiles),
       xla_flags=os.environ.get("XLA_FLAGS", ""),
       time_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
@@ -141,26 +144,29 @@ def _done(path: str | None, solver: tuple) -> set:
   if not path or not os.path.exists(path):
     return set()
   device = jax.devices()[0].device_kind
+  precision = jax.config.jax_default_matmul_precision or "default"
   done = set()
   with open(path) as f:
     for line in f:
       r = json.loads(line)
       task = models.load(r["task"], *solver)
       if (r["device"] == device and r.get("solver_iterations") == task.solver_iterations
-          and r.get("ls_iterations") == task.ls_iterations):
+          and r.get("ls_iterations") == task.ls_iterations
+          and r.get("matmul_precision", "default") == precision):
         done.add((r["task"], r["num_envs"]))
   return done
 
 
 def markdown(rows: list[dict]) -> str:
-  lines = ["| device | task | solver it/ls | envs | physics steps/s | bare MJX steps/s "
-           "| task/bare | compile s |",
-           "|---|---|---|---:|---:|---:|---:|---:|"]
+  lines = ["| device | task | solver it/ls | matmul precision | envs | physics steps/s "
+           "| bare MJX steps/s | task/bare | compile s |",
+           "|---|---|---|---|---:|---:|---:|---:|---:|"]
   for r in rows:
     bare = r.get("bare_physics_steps_per_s")
     lines.append(
         f"| {r['device']} | {r['task']} | {r.get('solver_iterations', '?')}/"
-        f"{r.get('ls_iterations', '?')} | {r['num_envs']:,} | {r['physics_steps_per_s']:,.0f} | "
+        f"{r.get('ls_iterations', '?')} | {r.get('matmul_precision', 'default')} | "
+        f"{r['num_envs']:,} | {r['physics_steps_per_s']:,.0f} | "
         + (f"{bare:,.0f} | {r['wrapper_speed_ratio']:.2f}" if bare else "– | –")
         + f" | {r['compile_s']:.1f} |")
   return "\n".join(lines) + "\n"
@@ -183,11 +189,17 @@ def main(argv=None) -> None:
                  help="override the solver's iterations (default: dm_control's)")
   p.add_argument("--ls-iterations", type=int, default=None,
                  help="override the line-search iterations (default: dm_control's)")
+  p.add_argument("--matmul-precision", default=None,
+                 choices=("default", "high", "highest", "bfloat16", "tensorfloat32", "float32"),
+                 help="jax_default_matmul_precision for the run (default: JAX's; on an H100 "
+                      "that lets float32 products use TensorFloat-32)")
   p.add_argument("--out", default=None,
                  help="JSONL output path, appended to; (task, size) rows already there for "
-                      "this device and solver are skipped, so a cut-off run resumes "
+                      "this device, solver and matmul precision are skipped, so a cut-off run resumes "
                       "(a .md of all its rows is written beside)")
   args = p.parse_args(argv)
+  if args.matmul_precision is not None:
+    jax.config.update("jax_default_matmul_precision", args.matmul_precision)
   names = models.ALL_TASKS if args.tasks == "all" else tuple(args.tasks.split(","))
   for name in names:
     models.split_name(name)

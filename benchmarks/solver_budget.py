@@ -8,15 +8,24 @@ in fidelity: from `--states` mid-episode states of dm_control random rollouts, i
 steps dm_control (float64, its own budget) and MJX under each budget with the
 same random actions for `--steps` control steps, and reports the largest
 |MJX − dm_control| over qpos, qvel, observation and reward (the measure of the
-trajectory-parity test). Pair it with `benchmarks.physics --solver-iterations …
+trajectory-parity test), and its median over the start states (less swayed by
+one chaotic contact). Pair it with `benchmarks.physics --solver-iterations …
 --ls-iterations …` for the speed side.
 
+`--precisions` repeats every budget under other values of JAX's
+`jax_default_matmul_precision` (the precision of float32 matrix products
+that name none; on an H100, "default" lets XLA use TensorFloat-32, a 10-bit
+mantissa, while "highest" keeps float32).
+
     python -m benchmarks.solver_budget --tasks walker-walk --budgets -/50,default,-/8,4/8,1/4
+    python -m benchmarks.solver_budget --tasks walker-walk --budgets default \
+        --precisions highest,default
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import platform
@@ -31,6 +40,10 @@ from mujoco import mjx
 from dmcr_jax import models
 from dmcr_jax.models import base
 from tests import dmc_reference
+
+
+# Values `jax.default_matmul_precision` accepts by name.
+PRECISIONS = ("default", "high", "highest", "bfloat16", "tensorfloat32", "float32")
 
 
 def parse_budget(text: str) -> tuple[int | None, int | None]:
@@ -68,8 +81,15 @@ def reference(name: str, states: dmc_reference.Records, actions: np.ndarray) -> 
 
 
 def mjx_rollout(name: str, budget, states: dmc_reference.Records,
-                actions: np.ndarray) -> list[np.ndarray]:
-  """MJX's (qpos, qvel, obs, reward) after each step under one solver budget."""
+                actions: np.ndarray, precision: str = "default") -> list[np.ndarray]:
+  """MJX's (qpos, qvel, obs, reward) after each step under one solver budget,
+  traced under `jax.default_matmul_precision(precision)`."""
+  with jax.default_matmul_precision(precision):
+    return _mjx_rollout(name, budget, states, actions)
+
+
+def _mjx_rollout(name: str, budget, states: dmc_reference.Records,
+                 actions: np.ndarray) -> list[np.ndarray]:
   task = models.load(name, *budget)
   n = len(states.reward)
   f32 = lambda x: jnp.asarray(x, jnp.float32)
@@ -96,6 +116,16 @@ def max_diff(a: list, b: list) -> float:
   return max(float(np.abs(x - y).max()) for sa, sb in zip(a, b) for x, y in zip(sa, sb))
 
 
+def median_diff(a: list, b: list) -> float:
+  """Median over start states of each state's largest |a − b| (steps, quantities)."""
+  per_state = np.zeros(len(a[0][0]))
+  for sa, sb in zip(a, b):
+    for x, y in zip(sa, sb):
+      d = np.abs(x - y)
+      per_state = np.maximum(per_state, d.reshape(len(per_state), -1).max(axis=1))
+  return float(np.median(per_state))
+
+
 def main(argv=None) -> None:
   argv = sys.argv[1:] if argv is None else argv
   p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -103,11 +133,19 @@ def main(argv=None) -> None:
   p.add_argument("--budgets", default="-/50,default,-/8,4/8,1/4",
                  help="'default' or ITERATIONS/LS_ITERATIONS ('-' keeps a default), "
                       "comma-separated; the first is the reference of the last column")
+  p.add_argument("--precisions", default="default",
+                 help="values of jax_default_matmul_precision, comma-separated (default, "
+                      "high, highest, float32, tensorfloat32, bfloat16); each budget runs "
+                      "under each")
   p.add_argument("--states", type=int, default=32, help="start states (mid-episode)")
   p.add_argument("--steps", type=int, default=20, help="control steps from each state")
   p.add_argument("--out", default=None, help="JSONL path to append to (a .md beside)")
   args = p.parse_args(argv)
   budgets = [parse_budget(b) for b in args.budgets.split(",")]
+  precisions = args.precisions.split(",")
+  for prec in precisions:
+    if prec not in PRECISIONS:
+      p.error(f"--precisions: {prec!r} is not one of {', '.join(PRECISIONS)}")
   rows = []
   for name in args.tasks.split(","):
     task = models.load(name)
@@ -117,15 +155,16 @@ def main(argv=None) -> None:
                           (args.steps, args.states, task.action_size))
     ref = [[r.qpos, r.qvel, r.obs, r.reward] for r in reference(name, states, actions)]
     first = None
-    for budget in budgets:
+    for budget, prec in itertools.product(budgets, precisions):
       t = models.load(name, *budget)
-      traj = mjx_rollout(name, budget, states, actions)
+      traj = mjx_rollout(name, budget, states, actions, prec)
       first = traj if first is None else first
       row = dict(bench="solver_budget", device=jax.devices()[0].device_kind,
                  host=platform.node(), task=name, states=args.states, steps=args.steps,
                  solver_iterations=t.solver_iterations, ls_iterations=t.ls_iterations,
-                 default=budget == (None, None),
+                 default=budget == (None, None), matmul_precision=prec,
                  max_abs_drift=max_diff(traj, ref),
+                 median_abs_drift=median_diff(traj, ref),
                  max_abs_diff_vs_first_budget=max_diff(traj, first),
                  time_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
       rows.append(row)
@@ -144,18 +183,24 @@ def main(argv=None) -> None:
               f"`{os.path.basename(args.out)}`; the last: "
               f"`python -m benchmarks.solver_budget {' '.join(argv)}`.\n\n"
               "Mid-episode states × control steps (in each row), float32 MJX against "
-              "float64 dm_control, and against MJX under the first budget run for the task. "
+              "float64 dm_control (largest, and the median over start states of each state's "
+              "largest), and against MJX under the first budget (and matmul precision) run "
+              "for the task. "
               "From contact-rich mid-episode states the absolute drift includes chaotic "
               "divergence and sparse rewards flipping (ball_in_cup: 0 or 1); compare "
               "budgets within a task.\n\n" + text)
 
 
 def markdown(rows: list[dict]) -> str:
-  table = ["| task | solver it/ls | states × steps | max abs drift vs dm_control "
-           "| max abs diff vs the task's first budget |", "|---|---|---|---:|---:|"]
-  table += [f"| {r['task']} | {r['solver_iterations']}/{r['ls_iterations']}"
-            f"{' (default)' if r['default'] else ''} | {r['states']} × {r['steps']} | "
-            f"{r['max_abs_drift']:.2e} | {r['max_abs_diff_vs_first_budget']:.2e} |"
+  table = ["| device | task | solver it/ls | matmul precision | states × steps "
+           "| max abs drift vs dm_control | median over states "
+           "| max abs diff vs the task's first run |", "|---|---|---|---|---|---:|---:|---:|"]
+  table += [f"| {r.get('device', '?')} | {r['task']} | {r['solver_iterations']}/"
+            f"{r['ls_iterations']}{' (default)' if r['default'] else ''} | "
+            f"{r.get('matmul_precision', 'default')} | {r['states']} × {r['steps']} | "
+            f"{r['max_abs_drift']:.2e} | "
+            + (f"{r['median_abs_drift']:.2e}" if 'median_abs_drift' in r else "–")
+            + f" | {r['max_abs_diff_vs_first_budget']:.2e} |"
             for r in rows]
   return "\n".join(table) + "\n"
 

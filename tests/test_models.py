@@ -292,3 +292,31 @@ def test_matches_dm_control_specs(name):
   # The physics layout is dm_control's.
   assert h.task.mj_model.nq == env.physics.model.nq
   assert h.task.mj_model.nv == env.physics.model.nv
+
+
+def _dot_precisions(lowered_text: str) -> list[str]:
+  """The `precision = [...]` of every dot_general in lowered StableHLO text."""
+  lines = [line for line in lowered_text.splitlines() if "stablehlo.dot_general" in line]
+  return [line.split("precision = ")[1].split("]")[0] + "]" if "precision = " in line
+          else "none" for line in lines]
+
+
+def test_physics_products_traced_in_float32():
+  """Every matrix product of reset and step is traced at HIGHEST precision.
+
+  A GPU's default lets float32 products run in TensorFloat-32, which on an H100
+  made MJX drift from dm_control by orders of magnitude (base module docstring);
+  a CPU computes float32 either way, so the traced precision is what is checked.
+  Cheetah's reset runs `mjx.forward` and physics steps in its `initialize`.
+  """
+  task = models.load("cheetah-run")
+  keys = jax.random.split(jax.random.key(0), 2)
+  state = jax.eval_shape(jax.vmap(task.reset), keys)  # lowered only, never compiled
+  action = jax.ShapeDtypeStruct((2, task.action_size), jnp.float32)
+  for fn, args in ((jax.vmap(task.reset), (keys,)), (jax.vmap(task.step), (state, action))):
+    precisions = _dot_precisions(jax.jit(fn).lower(*args).as_text())
+    assert precisions, "no matrix products found: the check would pass vacuously"
+    assert set(precisions) == {"[HIGHEST, HIGHEST]"}, sorted(set(precisions))
+  # The check itself: a bare MJX step outside the tasks' wrappers is not HIGHEST.
+  bare = jax.jit(jax.vmap(lambda d: mjx.step(task.mjx_model, d))).lower(state.data).as_text()
+  assert "[HIGHEST, HIGHEST]" not in set(_dot_precisions(bare))

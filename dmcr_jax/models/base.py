@@ -31,6 +31,18 @@ control steps MJX trajectories with cap 16 stay within 8.7e-4 of those with 50
 ls_iterations=...)` overrides either budget; smaller solver budgets are faster but
 do drift (mjx.benchmark's 1 / 4 makes walker diverge).
 
+Matrix-product precision: every physics part (`sync`, `physics_steps` and a
+task's `initialize`, `forward`, `advance`, `observe`) is traced under
+`jax.default_matmul_precision(PHYSICS_MATMUL_PRECISION)` ("highest": float32
+products). JAX's default lets a GPU with tensor cores compute float32 products in
+TensorFloat-32 (a 10-bit mantissa); on an H100 that made MJX drift from
+dm_control by orders of magnitude (median over 32 mid-episode states of the
+largest deviation in 20 control steps: walker 0.43 against 3.0e-4, humanoid 6.5
+against 8.5e-3, cheetah 4.4e-3 against 1.5e-5, fish 8.7e-3 against 6.1e-6) at no
+measured speed cost (walker, 8,192 envs: 1.17 M physics steps/s either way;
+benchmarks/results/solver_budget_h100.md, physics_h100_precision.md). Networks
+and other callers keep their own precision.
+
 Non-finite actions: `step` cannot raise inside `jit`, so NaN entries become 0 and
 ±inf become the nearest bound (after `jnp.nan_to_num` and clipping); the
 observation is never NaN because of an action. Host-side wrappers (the env)
@@ -54,6 +66,8 @@ Info = dict[str, jax.Array]
 
 # Line-search cap (MJX runs the line search as a fixed-length scan); see above.
 DEFAULT_LS_ITERATIONS = 16
+# Precision of the physics' matrix products; see "Matrix-product precision" above.
+PHYSICS_MATMUL_PRECISION = "highest"
 Observation = Mapping[str, jax.Array]
 
 
@@ -138,6 +152,20 @@ def load_mj_model(spec: TaskSpec) -> mujoco.MjModel:
   return model
 
 
+def full_precision(fn: Callable) -> Callable:
+  """`fn` traced under `jax.default_matmul_precision(PHYSICS_MATMUL_PRECISION)`.
+
+  The precision is fixed when a product is traced, so this holds inside any
+  caller's `jit`, `vmap` or `scan`; products that name a precision keep it.
+  """
+  @functools.wraps(fn)
+  def wrapped(*args, **kwargs):
+    with jax.default_matmul_precision(PHYSICS_MATMUL_PRECISION):
+      return fn(*args, **kwargs)
+  return wrapped
+
+
+@full_precision
 def sync(m: mjx.Model, d: mjx.Data) -> mjx.Data:
   """Recomputes position- and velocity-stage quantities and their sensors.
 
@@ -154,6 +182,7 @@ def sync(m: mjx.Model, d: mjx.Data) -> mjx.Data:
   return d
 
 
+@full_precision
 def physics_steps(m: mjx.Model, d: mjx.Data, n: int) -> mjx.Data:
   """Advances the physics `n` MJX steps (a `fori_loop`, so compile size is O(1))."""
   if n == 1:
@@ -284,6 +313,7 @@ class Task:
     return (self.spec.domain, self.spec.model_edit, self.n_sub_steps,
             self.solver_iterations, self.ls_iterations)
 
+  @full_precision
   def initialize(self, key: jax.Array) -> tuple[mjx.Data, Info]:
     """The task's initial-state draw on fresh data (before `forward`).
 
@@ -295,6 +325,7 @@ class Task:
     data = jax.tree.map(lambda x, ref: jnp.asarray(x, ref.dtype), data, fresh)
     return data, {k: jnp.asarray(v, jnp.result_type(v)) for k, v in info.items()}
 
+  @full_precision
   def forward(self, data: mjx.Data) -> mjx.Data:
     """`mj_forward`: every stage, as dm_control runs after `initialize_episode`."""
     return mjx.forward(self.mjx_model, data)
@@ -306,6 +337,7 @@ class Task:
                  done=jnp.zeros((), bool), step_count=jnp.zeros((), jnp.int32),
                  info=info)
 
+  @full_precision
   def advance(self, data: mjx.Data, action: jax.Array) -> mjx.Data:
     """The physics of one control step: clip the action, step, then `sync`."""
     m = self.mjx_model
@@ -314,6 +346,7 @@ class Task:
     data = physics_steps(m, data.replace(ctrl=action), self.n_sub_steps)
     return sync(m, data)
 
+  @full_precision
   def observe(self, data: mjx.Data, info: Info) -> tuple[jax.Array, jax.Array]:
     """The flat float32 observation and the float32 reward of synced `data`."""
     m = self.mjx_model

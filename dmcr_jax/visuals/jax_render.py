@@ -808,7 +808,8 @@ def compare(domain: str, seeds, states: int = 2, size: int = 84, rm=None,
 
   Returns:
     dict with "mad" (list of mean absolute pixel differences, one per frame),
-    "iou" (list of per-frame {body: IoU}), "frames" (list of (ref, jax) images).
+    "iou" (list of per-frame {body: IoU}), "frames" (list of (ref, jax) images),
+    "ids" (list of (ref, jax) body-id images, −1 for background).
   """
   import mujoco
   from dmcr_jax.visuals import render_model as rmod
@@ -819,7 +820,7 @@ def compare(domain: str, seeds, states: int = 2, size: int = 84, rm=None,
   looks = rmod.prepare(rm, params)
   dl = device_looks(scene, rm, looks)
   keys = {k for k, _, _ in scene.variables}
-  res = {"mad": [], "iou": [], "frames": []}
+  res = {"mad": [], "iou": [], "frames": [], "ids": []}
   fr = rmod.FrameRenderer(rm, size, size)
   try:
     data = mujoco.MjData(m)
@@ -848,6 +849,7 @@ def compare(domain: str, seeds, states: int = 2, size: int = 84, rm=None,
         res["mad"].append(float(np.abs(ref.astype(np.int32) - img).mean()))
         res["iou"].append(body_iou(ref_body, body, min_pixels))
         res["frames"].append((ref, img))
+        res["ids"].append((ref_body, body))
   finally:
     fr.close()
   return res
