@@ -37,6 +37,7 @@ import jax.numpy as jnp
 from mujoco import mjx
 
 from dmcr_jax import models
+from dmcr_jax.models import base
 
 
 def _compile(fn, *args):
@@ -79,7 +80,9 @@ def bare_rollout(task: models.Task, n: int, k: int):
       ctrl = jax.random.uniform(kk, (n, task.action_size), minval=task.action_low,
                                 maxval=task.action_high)
       d = d.replace(ctrl=ctrl)
-      d = jax.vmap(lambda x: jax.lax.fori_loop(0, sub, lambda _, y: mjx.step(m, y), x))(d)
+      # In float32, as the task's physics (`base.full_precision`), so only the wrapper differs.
+      d = jax.vmap(base.full_precision(
+          lambda x: jax.lax.fori_loop(0, sub, lambda _, y: mjx.step(m, y), x)))(d)
       return d, None
     d, _ = jax.lax.scan(body, data, jax.random.split(key, k))
     return d
