@@ -21,8 +21,6 @@ import sys
 
 import numpy as np
 
-KEYS = ("refbody", "jaxbody")  # per domain: f"{domain}_{key}"; RGB: "ref", "jax"
-
 
 def dump(domains: list[str], seeds: int, states: int, out: str, rgb: bool = False) -> None:
   """Saves `compare`'s body ids (int8, (frames, H, W)) per domain to `out`."""

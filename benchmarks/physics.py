@@ -13,7 +13,7 @@ compile), run time is the median of `--repeats` calls after `block_until_ready`.
     python -m benchmarks.physics --tasks walker-walk --sizes 8192 \
         --solver-iterations 1 --ls-iterations 4   # mjx.benchmark's solver budget
     python -m benchmarks.physics --tasks walker-walk --sizes 8192 \
-        --matmul-precision highest   # float32 products, no TensorFloat-32 on a GPU
+        --matmul-precision default   # JAX's precision: TensorFloat-32 products on an H100
 
 Each row is one JSON line (device kind, task, N, steps, solver budget, compile_s,
 run_s, physics_steps_per_s, and the baseline's numbers); a Markdown table is
@@ -80,7 +80,7 @@ def bare_rollout(task: models.Task, n: int, k: int):
       ctrl = jax.random.uniform(kk, (n, task.action_size), minval=task.action_low,
                                 maxval=task.action_high)
       d = d.replace(ctrl=ctrl)
-      # In float32, as the task's physics (`base.full_precision`), so only the wrapper differs.
+      # At the task physics' precision (`base.full_precision`): only the wrapper differs.
       d = jax.vmap(base.full_precision(
           lambda x: jax.lax.fori_loop(0, sub, lambda _, y: mjx.step(m, y), x)))(d)
       return d, None
@@ -95,7 +95,7 @@ def _row(task: models.Task, n: int, k: int, parallel_compiles: int) -> dict:
       platform=jax.default_backend(), host=platform.node(), cpus=os.cpu_count(),
       task=task.name, num_envs=n, control_steps=k, n_sub_steps=task.n_sub_steps,
       solver_iterations=task.solver_iterations, ls_iterations=task.ls_iterations,
-      matmul_precision=jax.config.jax_default_matmul_precision or "default",
+      matmul_precision=base.PHYSICS_MATMUL_PRECISION,
       concurrent_compiles=max(1, parallel_compiles),
       xla_flags=os.environ.get("XLA_FLAGS", ""),
       time_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
@@ -147,7 +147,6 @@ def _done(path: str | None, solver: tuple) -> set:
   if not path or not os.path.exists(path):
     return set()
   device = jax.devices()[0].device_kind
-  precision = jax.config.jax_default_matmul_precision or "default"
   done = set()
   with open(path) as f:
     for line in f:
@@ -155,7 +154,7 @@ def _done(path: str | None, solver: tuple) -> set:
       task = models.load(r["task"], *solver)
       if (r["device"] == device and r.get("solver_iterations") == task.solver_iterations
           and r.get("ls_iterations") == task.ls_iterations
-          and r.get("matmul_precision", "default") == precision):
+          and r.get("matmul_precision", "default") == base.PHYSICS_MATMUL_PRECISION):
         done.add((r["task"], r["num_envs"]))
   return done
 
@@ -192,17 +191,20 @@ def main(argv=None) -> None:
                  help="override the solver's iterations (default: dm_control's)")
   p.add_argument("--ls-iterations", type=int, default=None,
                  help="override the line-search iterations (default: dm_control's)")
-  p.add_argument("--matmul-precision", default=None,
-                 choices=("default", "high", "highest", "bfloat16", "tensorfloat32", "float32"),
-                 help="jax_default_matmul_precision for the run (default: JAX's; on an H100 "
-                      "that lets float32 products use TensorFloat-32)")
+  p.add_argument("--matmul-precision", default=base.PHYSICS_MATMUL_PRECISION,
+                 choices=base.MATMUL_PRECISIONS,
+                 help="precision of the physics' matrix products (default: %(default)s, the "
+                      "physics' own; 'default' is JAX's: TensorFloat-32 on an H100)")
   p.add_argument("--out", default=None,
                  help="JSONL output path, appended to; (task, size) rows already there for "
                       "this device, solver and matmul precision are skipped, so a cut-off run resumes "
                       "(a .md of all its rows is written beside)")
   args = p.parse_args(argv)
-  if args.matmul_precision is not None:
-    jax.config.update("jax_default_matmul_precision", args.matmul_precision)
+  with base.physics_matmul_precision(args.matmul_precision):
+    _run(args)
+
+
+def _run(args) -> None:
   names = models.ALL_TASKS if args.tasks == "all" else tuple(args.tasks.split(","))
   for name in names:
     models.split_name(name)

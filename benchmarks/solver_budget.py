@@ -12,10 +12,9 @@ trajectory-parity test), and its median over the start states (less swayed by
 one chaotic contact). Pair it with `benchmarks.physics --solver-iterations …
 --ls-iterations …` for the speed side.
 
-`--precisions` repeats every budget under other values of JAX's
-`jax_default_matmul_precision` (the precision of float32 matrix products
-that name none; on an H100, "default" lets XLA use TensorFloat-32, a 10-bit
-mantissa, while "highest" keeps float32).
+`--precisions` repeats every budget with the physics' matrix products at other
+precisions (`base.physics_matmul_precision`; the physics uses "highest", float32;
+on an H100, JAX's "default" lets XLA use TensorFloat-32, a 10-bit mantissa).
 
     python -m benchmarks.solver_budget --tasks walker-walk --budgets -/50,default,-/8,4/8,1/4
     python -m benchmarks.solver_budget --tasks walker-walk --budgets default \
@@ -40,10 +39,6 @@ from mujoco import mjx
 from dmcr_jax import models
 from dmcr_jax.models import base
 from tests import dmc_reference
-
-
-# Values `jax.default_matmul_precision` accepts by name.
-PRECISIONS = ("default", "high", "highest", "bfloat16", "tensorfloat32", "float32")
 
 
 def parse_budget(text: str) -> tuple[int | None, int | None]:
@@ -81,10 +76,11 @@ def reference(name: str, states: dmc_reference.Records, actions: np.ndarray) -> 
 
 
 def mjx_rollout(name: str, budget, states: dmc_reference.Records,
-                actions: np.ndarray, precision: str = "default") -> list[np.ndarray]:
+                actions: np.ndarray, precision: str = base.PHYSICS_MATMUL_PRECISION
+                ) -> list[np.ndarray]:
   """MJX's (qpos, qvel, obs, reward) after each step under one solver budget,
-  traced under `jax.default_matmul_precision(precision)`."""
-  with jax.default_matmul_precision(precision):
+  its products at `precision` (`base.physics_matmul_precision`)."""
+  with base.physics_matmul_precision(precision):
     return _mjx_rollout(name, budget, states, actions)
 
 
@@ -133,10 +129,10 @@ def main(argv=None) -> None:
   p.add_argument("--budgets", default="-/50,default,-/8,4/8,1/4",
                  help="'default' or ITERATIONS/LS_ITERATIONS ('-' keeps a default), "
                       "comma-separated; the first is the reference of the last column")
-  p.add_argument("--precisions", default="default",
-                 help="values of jax_default_matmul_precision, comma-separated (default, "
-                      "high, highest, float32, tensorfloat32, bfloat16); each budget runs "
-                      "under each")
+  p.add_argument("--precisions", default=base.PHYSICS_MATMUL_PRECISION,
+                 help="precisions of the physics' matrix products, comma-separated, from "
+                      f"{', '.join(base.MATMUL_PRECISIONS)} (default: %(default)s, the "
+                      "physics' own); each budget runs under each")
   p.add_argument("--states", type=int, default=32, help="start states (mid-episode)")
   p.add_argument("--steps", type=int, default=20, help="control steps from each state")
   p.add_argument("--out", default=None, help="JSONL path to append to (a .md beside)")
@@ -144,8 +140,8 @@ def main(argv=None) -> None:
   budgets = [parse_budget(b) for b in args.budgets.split(",")]
   precisions = args.precisions.split(",")
   for prec in precisions:
-    if prec not in PRECISIONS:
-      p.error(f"--precisions: {prec!r} is not one of {', '.join(PRECISIONS)}")
+    if prec not in base.MATMUL_PRECISIONS:
+      p.error(f"--precisions: {prec!r} is not one of {', '.join(base.MATMUL_PRECISIONS)}")
   rows = []
   for name in args.tasks.split(","):
     task = models.load(name)

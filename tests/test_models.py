@@ -320,3 +320,12 @@ def test_physics_products_traced_in_float32():
   # The check itself: a bare MJX step outside the tasks' wrappers is not HIGHEST.
   bare = jax.jit(jax.vmap(lambda d: mjx.step(task.mjx_model, d))).lower(state.data).as_text()
   assert "[HIGHEST, HIGHEST]" not in set(_dot_precisions(bare))
+  # The diagnostic switch of the benchmarks reaches the physics, and only inside its block.
+  step = jax.vmap(task.step)
+  with base.physics_matmul_precision("default"):
+    lowered = jax.jit(step).lower(state, action).as_text()
+  assert set(_dot_precisions(lowered)) == {"[DEFAULT, DEFAULT]"}
+  assert base.PHYSICS_MATMUL_PRECISION == "highest"
+  with pytest.raises(ValueError, match="highest"):
+    with base.physics_matmul_precision("fp8"):
+      pass

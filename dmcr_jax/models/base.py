@@ -41,7 +41,9 @@ largest deviation in 20 control steps: walker 0.43 against 3.0e-4, humanoid 6.5
 against 8.5e-3, cheetah 4.4e-3 against 1.5e-5, fish 8.7e-3 against 6.1e-6) at no
 measured speed cost (walker, 8,192 envs: 1.17 M physics steps/s either way;
 benchmarks/results/solver_budget_h100.md, physics_h100_precision.md). Networks
-and other callers keep their own precision.
+and other callers keep their own precision. `physics_matmul_precision(...)` sets
+another precision for physics traced inside it (for measuring this:
+`benchmarks.solver_budget --precisions`, `benchmarks.physics --matmul-precision`).
 
 Non-finite actions: `step` cannot raise inside `jit`, so NaN entries become 0 and
 ±inf become the nearest bound (after `jnp.nan_to_num` and clipping); the
@@ -51,6 +53,7 @@ reject non-finite actions with an error before they get here.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 from typing import Any, Callable, Mapping
@@ -68,6 +71,8 @@ Info = dict[str, jax.Array]
 DEFAULT_LS_ITERATIONS = 16
 # Precision of the physics' matrix products; see "Matrix-product precision" above.
 PHYSICS_MATMUL_PRECISION = "highest"
+# The names `jax.default_matmul_precision` accepts.
+MATMUL_PRECISIONS = ("default", "high", "highest", "bfloat16", "tensorfloat32", "float32")
 Observation = Mapping[str, jax.Array]
 
 
@@ -163,6 +168,23 @@ def full_precision(fn: Callable) -> Callable:
     with jax.default_matmul_precision(PHYSICS_MATMUL_PRECISION):
       return fn(*args, **kwargs)
   return wrapped
+
+
+@contextlib.contextmanager
+def physics_matmul_precision(precision: str):
+  """Physics traced inside the block computes its products at `precision` (one of
+  `MATMUL_PRECISIONS`; "default" is JAX's, TensorFloat-32 on an H100) instead of
+  `PHYSICS_MATMUL_PRECISION`. For measuring what float32 buys; functions traced
+  before or after the block are unaffected."""
+  global PHYSICS_MATMUL_PRECISION
+  if precision not in MATMUL_PRECISIONS:
+    raise ValueError(f"matmul precision {precision!r} is not one of "
+                     f"{', '.join(MATMUL_PRECISIONS)}")
+  saved, PHYSICS_MATMUL_PRECISION = PHYSICS_MATMUL_PRECISION, precision
+  try:
+    yield
+  finally:
+    PHYSICS_MATMUL_PRECISION = saved
 
 
 @full_precision
