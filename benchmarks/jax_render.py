@@ -6,8 +6,9 @@ factor varying (one visual seed per env) and random body poses (a few hundred
 distinct dm_control states tiled over the batch), it measures, per batch size N:
 the compile time of the jitted batch render and the median run time of
 `--repeats` calls (`block_until_ready`), and reports frames/s. Options choose the
-image size, shadows, reflection and the chunk size (envs per vmapped chunk,
-bounding memory).
+image size, shadows, reflection, whether the fused GPU kernel renders
+(`--kernel`; `--block` pixels per program, `--num-warps`) and, without it, the
+chunk size (envs per vmapped chunk, bounding memory).
 
 `--mode env` (end to end): `dmcr_jax.make(task, N, renderer="jax")` with visual
 seeds 1 … N, vary="all", the task's frame skip (walker-walk: 2) and stacks of 3,
@@ -23,6 +24,10 @@ observations left on the device, `info` fetched to the host) and the pure
         --out benchmarks/results/jax_render_h100.jsonl
     python -m benchmarks.jax_render --mode env --batches 1024,4096,16384 --chunk 256 \\
         --out benchmarks/results/jax_env_h100.jsonl
+
+`--mode check`: the fused GPU kernel's frames (`jax_render_kernel`) against the
+XLA renderer's for the same N envs: how many channel values differ and by how much
+(on a CPU the kernel runs in Pallas' interpreter; keep N small there).
 
 One JSON line per row (device, backend, sizes, compile and run seconds,
 frames/s or agent-steps/s) and a Markdown table beside the JSONL file.
@@ -73,13 +78,20 @@ def inputs(task: str, n: int, states: int = 256, seed: int = 0):
 
 
 def bench(task: str, n: int, size: int, shadows: bool, reflection: bool,
-          chunk: int | None, repeats: int) -> dict:
+          chunk: int | None, repeats: int, kernel: bool = False,
+          block: int | None = None, num_warps: int | None = None) -> dict:
+  """Frames/s of `render_batch` (module doc); `kernel`: the fused GPU kernel, with
+  `block` pixels per program and `num_warps` (None: `jax_render_kernel`'s defaults)."""
   import jax
   from dmcr_jax.visuals import jax_render as JR
+  from dmcr_jax.visuals import jax_render_kernel as JK
   scene, bp, look = inputs(task, n)
+  extra = {}
+  if kernel:
+    extra = dict(block=block or JK.BLOCK, num_warps=num_warps or JK.NUM_WARPS)
   fn = jax.jit(lambda bp, look: JR.render_batch(
       scene, bp, look, height=size, width=size, shadows=shadows, reflection=reflection,
-      chunk=chunk))
+      chunk=chunk, kernel=kernel, **extra))
   t0 = time.perf_counter()
   jax.block_until_ready(fn(bp, look))
   compile_s = time.perf_counter() - t0
@@ -89,9 +101,33 @@ def bench(task: str, n: int, size: int, shadows: bool, reflection: bool,
     jax.block_until_ready(fn(bp, look))
     times.append(time.perf_counter() - t0)
   run_s = statistics.median(times)
-  return dict(batch=n, chunk=chunk, shadows=shadows, reflection=reflection,
-              objects=scene.num_objects, compile_s=compile_s, run_s=run_s,
-              frames_per_s=n / run_s)
+  return dict(batch=n, chunk=None if kernel else chunk, kernel=kernel, **extra,
+              shadows=shadows, reflection=reflection, objects=scene.num_objects,
+              compile_s=compile_s, run_s=run_s, frames_per_s=n / run_s)
+
+
+def check_kernel(task: str, n: int, size: int, shadows: bool, reflection: bool,
+                 block: int | None = None, num_warps: int | None = None,
+                 interpret: bool = False) -> dict:
+  """The fused kernel's frames against the XLA renderer's (`render_batch(kernel=False)`)
+  for n envs of `task` (module doc, `--mode check`): differing channel values,
+  frames with any difference, the largest difference."""
+  import jax
+  from dmcr_jax.visuals import jax_render as JR
+  from dmcr_jax.visuals import jax_render_kernel as JK
+  scene, bp, look = inputs(task, n)
+  opts = dict(height=size, width=size, shadows=shadows, reflection=reflection)
+  xla = np.asarray(jax.jit(lambda bp, look: JR.render_batch(
+      scene, bp, look, kernel=False, **opts))(bp, look)).astype(np.int32)
+  extra = dict(block=block or JK.BLOCK, num_warps=num_warps or JK.NUM_WARPS)
+  fused = np.asarray(jax.jit(lambda bp, look: JK.render_batch(
+      scene, bp, look, interpret=interpret, **extra, **opts))(bp, look)).astype(np.int32)
+  diff = np.abs(fused - xla)
+  return dict(batch=n, **extra, shadows=shadows, reflection=reflection,
+              objects=scene.num_objects, values=int(diff.size),
+              values_differing=int((diff > 0).sum()),
+              frames_differing=int((diff.reshape(n, -1) > 0).any(1).sum()),
+              max_abs_diff=int(diff.max()), mean_abs_diff=float(diff.mean()))
 
 
 def bench_env(task: str, n: int, size: int, shadows: bool, reflection: bool,
@@ -170,11 +206,14 @@ def markdown_env(rows: list[dict]) -> str:
 
 
 def markdown(rows: list[dict]) -> str:
-  lines = ["| device | task | size | batch | chunk | shadows | reflection | compile s | "
-           "frames/s | label |", "|---|---|---:|---:|---:|---|---|---:|---:|---|"]
+  lines = ["| device | task | size | batch | kernel (block, warps) / chunk | shadows | "
+           "reflection | compile s | frames/s | label |",
+           "|---|---|---:|---:|---:|---|---|---:|---:|---|"]
   for r in rows:
+    how = (f"kernel ({r['block']}, {r['num_warps']})" if r.get("kernel")
+           else f"XLA, chunk {r['chunk'] or '–'}")
     lines.append(f"| {r['device']} | {r['task']} | {r['size']} | {r['batch']:,} | "
-                 f"{r['chunk'] or '–'} | {r['shadows']} | {r['reflection']} | "
+                 f"{how} | {r['shadows']} | {r['reflection']} | "
                  f"{r['compile_s']:.1f} | {r['frames_per_s']:,.0f} | {r.get('label', '')} |")
   return "\n".join(lines) + "\n"
 
@@ -183,11 +222,15 @@ def main(argv=None) -> None:
   argv = sys.argv[1:] if argv is None else argv
   p = argparse.ArgumentParser(description="JAX ray caster frames/s, or the JAX pixel "
                                           "env's agent-steps/s (--mode env).")
-  p.add_argument("--mode", default="render", choices=("render", "env"))
+  p.add_argument("--mode", default="render", choices=("render", "env", "check"))
   p.add_argument("--task", default="walker-walk")
   p.add_argument("--size", type=int, default=84)
   p.add_argument("--batches", default="1024,4096,16384")
   p.add_argument("--chunk", type=int, default=0, help="envs per chunk (0: all at once)")
+  p.add_argument("--kernel", action="store_true",
+                 help="render in the fused GPU kernel (jax_render_kernel)")
+  p.add_argument("--block", type=int, default=None, help="kernel: pixels per program")
+  p.add_argument("--num-warps", type=int, default=None, help="kernel: warps per program")
   p.add_argument("--no-shadows", action="store_true")
   p.add_argument("--no-reflection", action="store_true")
   p.add_argument("--repeats", type=int, default=3)
@@ -210,20 +253,28 @@ def main(argv=None) -> None:
   rows = []
   for n in [int(b) for b in args.batches.split(",")]:
     flags = (not args.no_shadows, not args.no_reflection)
-    if env_mode:
+    if args.mode == "check":
+      row = dict(common, bench="jax_render_kernel_check", **check_kernel(
+          args.task, n, args.size, *flags, args.block, args.num_warps,
+          interpret=jax.default_backend() != "gpu"))
+    elif env_mode:
       row = dict(common, **bench_env(args.task, n, args.size, *flags, args.chunk or None,
                                      args.repeats, args.steps, args.scan_steps,
                                      args.ls_iterations))
     else:
       chunk = args.chunk if args.chunk and n % args.chunk == 0 else None
-      row = dict(common, **bench(args.task, n, args.size, *flags, chunk, args.repeats))
+      row = dict(common, **bench(args.task, n, args.size, *flags, chunk, args.repeats,
+                                 args.kernel, args.block, args.num_warps))
     rows.append(row)
     print(json.dumps(row), flush=True)
     if args.out:
       os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
       with open(args.out, "a") as f:
         f.write(json.dumps(row) + "\n")
-  table = markdown_env(rows) if env_mode else markdown(rows)
+  if args.mode == "check":
+    table = "".join(json.dumps(r) + "\n" for r in rows)
+  else:
+    table = markdown_env(rows) if env_mode else markdown(rows)
   print(table)
   if args.out:
     with open(os.path.splitext(args.out)[0] + ".md", "w") as f:

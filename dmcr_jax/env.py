@@ -7,7 +7,8 @@ not equal) and the frame stacks as one jitted call on the device
 (`dmcr_jax.jax_env`, whose pure functions a training loop can scan). Both share
 the arguments, spaces, visual seeds, auto-reset, observations and info described
 below (`_PixelEnvBase`); `workers`, `quality`, `gl` and `copy_obs` are the pool's,
-`shadows`, `reflection`, `render_chunk` and `obs_on_device` the JAX renderer's,
+`shadows`, `reflection`, `render_chunk`, `render_kernel` and `obs_on_device` the
+JAX renderer's,
 and either refuses the other's. With "jax", a `SeedRange` may hold at most
 `jax_env.MAX_RANGE_LOOKS` seeds (their looks are precomputed on the device).
 
@@ -120,7 +121,7 @@ RENDERERS = ("pool", "jax")
 """What `make(renderer=...)` accepts: the CPU render pool (MuJoCo's own pixels) or
 the JAX ray caster (physics, rendering and stacking in one jitted call)."""
 _POOL_ONLY = ("workers", "quality", "gl", "copy_obs")
-_JAX_ONLY = ("shadows", "reflection", "render_chunk", "obs_on_device")
+_JAX_ONLY = ("shadows", "reflection", "render_chunk", "render_kernel", "obs_on_device")
 
 
 class _PixelEnvBase(gymnasium.vector.VectorEnv):
@@ -449,14 +450,14 @@ class JaxPixelVectorEnv(_PixelEnvBase):
                frame_stack: int = 3, image_size: int | tuple[int, int] = 84,
                camera: int | str = 0, seed: int = 0, *, shadows: bool = True,
                reflection: bool = True, render_chunk: int | None = None,
-               obs_on_device: bool = False, solver_iterations: int | None = None,
-               ls_iterations: int | None = None):
+               render_kernel: bool = False, obs_on_device: bool = False,
+               solver_iterations: int | None = None, ls_iterations: int | None = None):
     super().__init__(task, num_envs, visual_seeds, vary, frame_skip, frame_stack,
                      image_size, camera, seed, solver_iterations, ls_iterations)
     if render_chunk is not None:
       render_chunk = positive_int("render_chunk", render_chunk)
     self._options = dict(camera=camera, shadows=bool(shadows), reflection=bool(reflection),
-                         render_chunk=render_chunk)
+                         render_chunk=render_chunk, render_kernel=bool(render_kernel))
     self.obs_on_device = bool(obs_on_device)
     self._ps = None
     self._donate = jax.default_backend() != "cpu"
@@ -578,8 +579,10 @@ def make(task: str, num_envs: int = 1, visual_seeds: Any = 0,
       returns views of shared memory, see the module docstring). For "jax"
       (which has no workers and no quality presets): `shadows`, `reflection`
       (default True: MuJoCo's picture), `render_chunk` (envs per render chunk,
-      see `jax_env.make_env`), `obs_on_device` (default False; True returns
-      observations as device arrays, skipping their transfer). Both:
+      see `jax_env.make_env`), `render_kernel` (default False; True renders in
+      one fused GPU kernel, `visuals.jax_render_kernel`), `obs_on_device`
+      (default False; True returns observations as device arrays, skipping
+      their transfer). Both:
       `solver_iterations`, `ls_iterations` for the physics (`models.load`).
 
   Returns:

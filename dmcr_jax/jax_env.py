@@ -89,6 +89,8 @@ class PixelEnv:
     num_envs, frame_skip, frame_stack, height, width: static sizes.
     shadows, reflection: static; the ray caster's options (`jax_render.render`).
     render_chunk: static; envs per render chunk (None: all at once).
+    render_kernel: static; render in one fused GPU kernel
+      (`jax_render.render_batch(kernel=True)`; chunks do not apply).
   """
   scene: JS.Scene
   looks: JS.DeviceLook
@@ -103,6 +105,7 @@ class PixelEnv:
   shadows: bool = struct.field(pytree_node=False, default=True)
   reflection: bool = struct.field(pytree_node=False, default=True)
   render_chunk: int | None = struct.field(pytree_node=False, default=None)
+  render_kernel: bool = struct.field(pytree_node=False, default=False)
 
   @property
   def _seeds(self) -> physics_env.SeedSource:
@@ -125,7 +128,8 @@ class PixelEnv:
     keys = {k for k, _, _ in self.scene.variables}
     variables = {k: info[k] for k in self.task.model_variable_ids if k in keys}
     return JR.render_batch(self.scene, JS.poses(physics.task.data), look, variables or None,
-                           chunk=self.render_chunk, height=self.height, width=self.width,
+                           chunk=self.render_chunk, kernel=self.render_kernel,
+                           height=self.height, width=self.width,
                            shadows=self.shadows, reflection=self.reflection)
 
   def start(self, physics: physics_env.EnvState, look: JS.DeviceLook) -> PixelState:
@@ -219,7 +223,7 @@ def scene_of(domain: str, camera: int | str = 0) -> tuple[rmod.RenderModel, JS.S
 def make_env(task: Task, num_envs: int, seeds: SeedRange | np.ndarray, vary,
              frame_skip: int, frame_stack: int, height: int, width: int, *,
              camera: int | str = 0, shadows: bool = True, reflection: bool = True,
-             render_chunk: int | None = None) -> PixelEnv:
+             render_chunk: int | None = None, render_kernel: bool = False) -> PixelEnv:
   """Builds a `PixelEnv` (host work: the scene once per domain, the looks per call).
 
   Args:
@@ -233,12 +237,14 @@ def make_env(task: Task, num_envs: int, seeds: SeedRange | np.ndarray, vary,
     shadows, reflection: the ray caster's options (default: MuJoCo's picture).
     render_chunk: envs per render chunk; None = all at once up to `RENDER_CHUNK`
       envs, `RENDER_CHUNK` above.
+    render_kernel: render in one fused GPU kernel (`jax_render_kernel`).
 
   Returns:
     The `PixelEnv`.
 
   Raises:
-    ValueError: a range larger than `MAX_RANGE_LOOKS`, or fixed seeds not (N,).
+    ValueError: a range larger than `MAX_RANGE_LOOKS`, fixed seeds not (N,), or
+      `render_kernel` without a GPU.
     NotImplementedError: a scene the ray caster cannot draw (`build_scene`).
   """
   rm, scene = scene_of(task.spec.domain, camera)
@@ -252,6 +258,8 @@ def make_env(task: Task, num_envs: int, seeds: SeedRange | np.ndarray, vary,
       raise ValueError(f"fixed visual seeds must have shape ({num_envs},), got {fixed.shape}")
     table = host_looks(scene, rm, fixed, vary)
     fixed = jnp.asarray(fixed)
+  if render_kernel:
+    JR.check_kernel_backend()
   if render_chunk is None and num_envs > RENDER_CHUNK:
     render_chunk = RENDER_CHUNK
   return PixelEnv(scene=scene, looks=table, fixed_seeds=fixed, task=task,
@@ -259,7 +267,7 @@ def make_env(task: Task, num_envs: int, seeds: SeedRange | np.ndarray, vary,
                   num_envs=int(num_envs), frame_skip=int(frame_skip),
                   frame_stack=int(frame_stack), height=int(height), width=int(width),
                   shadows=bool(shadows), reflection=bool(reflection),
-                  render_chunk=render_chunk)
+                  render_chunk=render_chunk, render_kernel=bool(render_kernel))
 
 
 # Jitted entry points (the env is an argument: its arrays are not baked in as constants).

@@ -156,6 +156,9 @@ def test_set_state_restarts_the_stacks_from_that_state(envs):
     (dict(shadows=False), "shadows apply only to renderer='jax'"),
     (dict(renderer="jax", visual_seeds=levels(jax_env.MAX_RANGE_LOOKS + 1)),
      "at most 100,000 seeds"),
+    (dict(render_kernel=True), "render_kernel apply only to renderer='jax'"),
+    pytest.param(dict(renderer="jax", render_kernel=True), "fused render kernel needs a GPU",
+                 marks=pytest.mark.skipif(jax.default_backend() == "gpu", reason="a GPU")),
 ])
 def test_make_rejects_bad_renderer_arguments(kwargs, match):
   with pytest.raises(ValueError, match=match):
