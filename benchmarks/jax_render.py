@@ -79,16 +79,19 @@ def inputs(task: str, n: int, states: int = 256, seed: int = 0):
 
 def bench(task: str, n: int, size: int, shadows: bool, reflection: bool,
           chunk: int | None, repeats: int, kernel: bool = False,
-          block: int | None = None, num_warps: int | None = None) -> dict:
+          block: int | None = None, num_warps: int | None = None,
+          skip_empty: bool = False) -> dict:
   """Frames/s of `render_batch` (module doc); `kernel`: the fused GPU kernel, with
-  `block` pixels per program and `num_warps` (None: `jax_render_kernel`'s defaults)."""
+  `block` pixels per program, `num_warps` (None: `jax_render_kernel`'s defaults) and
+  `skip_empty` (programs skip work none of their pixels needs)."""
   import jax
   from dmcr_jax.visuals import jax_render as JR
   from dmcr_jax.visuals import jax_render_kernel as JK
   scene, bp, look = inputs(task, n)
   extra = {}
   if kernel:
-    extra = dict(block=block or JK.BLOCK, num_warps=num_warps or JK.NUM_WARPS)
+    extra = dict(block=block or JK.BLOCK, num_warps=num_warps or JK.NUM_WARPS,
+                 skip_empty=skip_empty)
   fn = jax.jit(lambda bp, look: JR.render_batch(
       scene, bp, look, height=size, width=size, shadows=shadows, reflection=reflection,
       chunk=chunk, kernel=kernel, **extra))
@@ -108,7 +111,7 @@ def bench(task: str, n: int, size: int, shadows: bool, reflection: bool,
 
 def check_kernel(task: str, n: int, size: int, shadows: bool, reflection: bool,
                  block: int | None = None, num_warps: int | None = None,
-                 interpret: bool = False) -> dict:
+                 skip_empty: bool = False, interpret: bool = False) -> dict:
   """The fused kernel's frames against the XLA renderer's (`render_batch(kernel=False)`)
   for n envs of `task` (module doc, `--mode check`): differing channel values,
   frames with any difference, the largest difference."""
@@ -119,7 +122,8 @@ def check_kernel(task: str, n: int, size: int, shadows: bool, reflection: bool,
   opts = dict(height=size, width=size, shadows=shadows, reflection=reflection)
   xla = np.asarray(jax.jit(lambda bp, look: JR.render_batch(
       scene, bp, look, kernel=False, **opts))(bp, look)).astype(np.int32)
-  extra = dict(block=block or JK.BLOCK, num_warps=num_warps or JK.NUM_WARPS)
+  extra = dict(block=block or JK.BLOCK, num_warps=num_warps or JK.NUM_WARPS,
+               skip_empty=skip_empty)
   fused = np.asarray(jax.jit(lambda bp, look: JK.render_batch(
       scene, bp, look, interpret=interpret, **extra, **opts))(bp, look)).astype(np.int32)
   diff = np.abs(fused - xla)
@@ -210,7 +214,8 @@ def markdown(rows: list[dict]) -> str:
            "reflection | compile s | frames/s | label |",
            "|---|---|---:|---:|---:|---|---|---:|---:|---|"]
   for r in rows:
-    how = (f"kernel ({r['block']}, {r['num_warps']})" if r.get("kernel")
+    how = (f"kernel ({r['block']}, {r['num_warps']}{', skip' if r.get('skip_empty') else ''})"
+           if r.get("kernel")
            else f"XLA, chunk {r['chunk'] or '–'}")
     lines.append(f"| {r['device']} | {r['task']} | {r['size']} | {r['batch']:,} | "
                  f"{how} | {r['shadows']} | {r['reflection']} | "
@@ -231,6 +236,8 @@ def main(argv=None) -> None:
                  help="render in the fused GPU kernel (jax_render_kernel)")
   p.add_argument("--block", type=int, default=None, help="kernel: pixels per program")
   p.add_argument("--num-warps", type=int, default=None, help="kernel: warps per program")
+  p.add_argument("--skip-empty", action="store_true",
+                 help="kernel: programs skip work none of their pixels needs")
   p.add_argument("--no-shadows", action="store_true")
   p.add_argument("--no-reflection", action="store_true")
   p.add_argument("--repeats", type=int, default=3)
@@ -255,7 +262,7 @@ def main(argv=None) -> None:
     flags = (not args.no_shadows, not args.no_reflection)
     if args.mode == "check":
       row = dict(common, bench="jax_render_kernel_check", **check_kernel(
-          args.task, n, args.size, *flags, args.block, args.num_warps,
+          args.task, n, args.size, *flags, args.block, args.num_warps, args.skip_empty,
           interpret=jax.default_backend() != "gpu"))
     elif env_mode:
       row = dict(common, **bench_env(args.task, n, args.size, *flags, args.chunk or None,
@@ -264,7 +271,8 @@ def main(argv=None) -> None:
     else:
       chunk = args.chunk if args.chunk and n % args.chunk == 0 else None
       row = dict(common, **bench(args.task, n, args.size, *flags, chunk, args.repeats,
-                                 args.kernel, args.block, args.num_warps))
+                                 args.kernel, args.block, args.num_warps,
+                                 args.skip_empty))
     rows.append(row)
     print(json.dumps(row), flush=True)
     if args.out:

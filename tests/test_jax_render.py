@@ -252,8 +252,9 @@ def _batch(rm, n, seed=0):
 def test_kernel_frames_equal_xla_frames(bank):
   """The kernel's code (the same `trace_pixels`, read through `RefReader`) gives
   the XLA renderer's frames (up to float rounding: ≤ 1 level in < 1 % of the
-  values) and ids, with a transparent object, a pixel block that does not divide
-  the rays (the padding is cut off) and supersampling."""
+  values) and ids, with transparent objects, a pixel block that does not divide
+  the rays (the padding is cut off), supersampling, and blocks skipping what none
+  of their pixels needs (the top block sees only sky)."""
   from dmcr_jax.visuals import jax_render_kernel as JK
   rm, scene, looks, dl = _setup("cartpole", bank, [0, 1])
   dl = dl.replace(mat_rgba=dl.mat_rgba.at[:, ::2, 3].set(0.8))
@@ -262,8 +263,9 @@ def test_kernel_frames_equal_xla_frames(bank):
   floats, ints = jax.vmap(JR.pack_env, in_axes=(None, 0, 0))(scene, bp, dl)
   colour, ids = JK.trace_batch(JR.layout(scene), floats, ints,
                                scene.floor_texels.reshape(-1), scene.skies.reshape(-1),
-                               block=64, interpret=True, **opts)
+                               block=64, skip_empty=True, interpret=True, **opts)
   assert colour.shape == (2, 3, 448) and ids.shape == (2, 448)     # 400 rays, 7 blocks
+  assert np.any(np.all(np.asarray(ids)[:, :64] < 0, axis=1))      # a block of sky only
   fused = np.asarray(JR.image_from_planes(colour, 10, 10, 2)).astype(int)
   xla = np.asarray(JR.render_batch(scene, bp, dl, kernel=False, **opts))
   diff = np.abs(fused - xla)
@@ -281,9 +283,11 @@ def test_kernel_lowers_for_cuda(bank):
   machine without one): every op of the per-pixel code has a Triton form."""
   from dmcr_jax.visuals import jax_render_kernel as JK
   rm, scene, looks, dl = _setup("walker", bank, [0, 1])
-  fn = jax.jit(lambda bp, look: JK.render_batch(scene, bp, look, height=84, width=84))
-  text = fn.trace(_batch(rm, 2), dl).lower(lowering_platforms=("cuda",)).as_text()
-  assert "__gpu$xla.gpu.triton" in text and "dmcr_ray_cast" in text
+  for skip in (False, True):
+    fn = jax.jit(lambda bp, look: JK.render_batch(scene, bp, look, height=84, width=84,
+                                                  skip_empty=skip))
+    text = fn.trace(_batch(rm, 2), dl).lower(lowering_platforms=("cuda",)).as_text()
+    assert "__gpu$xla.gpu.triton" in text and "dmcr_ray_cast" in text
 
 
 def test_variables_move_the_reacher_target(bank):

@@ -763,7 +763,8 @@ def _camera_rays(L: Layout, R, pix, height: int, width: int, supersample: int):
 
 
 def trace_pixels(L: Layout, R, pix, *, height: int, width: int, shadows: bool,
-                 reflection: bool, supersample: int = 1, running: bool = True):
+                 reflection: bool, supersample: int = 1, running: bool = True,
+                 skip_empty: bool = False):
   """Colour and nearest object of some pixels of one env.
 
   The per-pixel part of the renderer, written once for XLA (`render`) and the
@@ -776,6 +777,11 @@ def trace_pixels(L: Layout, R, pix, *, height: int, width: int, shadows: bool,
     pix: int32 flat indices of the rays (row-major over H·s × W·s).
     height, width, shadows, reflection, supersample: as `render`.
     running: the nearest-hit form (`running_minima`).
+    skip_empty: skip, for the whole of `pix`, work none of its rays needs (the
+      opaque shading when none hits a surface, the sky when all do, the
+      reflection when none sees the floor, the transparent layers when none meets
+      a transparent object; `lax.cond`, which under vmap computes both sides):
+      for the GPU kernel, where `pix` is one program's block; same result.
 
   Returns:
     ((r, g, b) in [0, 1], object id or −1), each shaped as `pix`.
@@ -847,38 +853,53 @@ def trace_pixels(L: Layout, R, pix, *, height: int, width: int, shadows: bool,
       vis.append((tmin >= maxd).astype(jnp.float32))
     return vis
 
-  # ---- opaque surface
+  def when(pred, fn, *args):
+    """fn(*args), or with `skip_empty` and `pred` false, args (or zeros) unchanged."""
+    if not skip_empty:
+      return fn(*args)
+    keep = (lambda *a: a[0] if len(a) == 1 else a) if args else (
+        lambda: tuple(jnp.zeros_like(t_o) for _ in range(3)))
+    return jax.lax.cond(pred, fn, keep, *args)
+
   hit = t_o < INF
-  t_hit = jnp.where(hit, t_o, 0.0)
-  p, pl, n, obj = surface(k_op, t_hit, o, d)
   v = (-d[0], -d[1], -d[2])
-  if floor_obj >= 0:
-    floor_px = (k_op == floor_obj) & hit
-    pix_angle = 2 * math.tan(math.radians(L.fovy) / 2) / (height * supersample)
-    cos_in = jnp.maximum(jnp.abs(_dot(d, n)), 1e-3)
-    footprint = t_hit * pix_angle * (-dz) * MIP_SCALE / cos_in ** MIP_COS_POWER
-    half = (R.f(L.OBJ * floor_obj + 12), R.f(L.OBJ * floor_obj + 13))
-    fc = _floor_color(L, R, pl, footprint, half)
-    tex = tuple(jnp.where(floor_px, c, 1.0) for c in fc)
-  else:
-    tex = None
-  vis = shadow_vis(p, n)
-  color = lit(obj, p, n, v, 1.0, vis, tex)
-  if reflection and floor_obj >= 0:
-    rd = _sub(d, _scale(n, 2 * _dot(d, n)))
-    ro = _add(p, _scale(n, 1e-4))
-    t_r, k_r = _nearest(L, R, ro, rd, running=running, skip=floor_obj)
-    rhit = (t_r < INF) & floor_px
-    rp, _, rn, robj = surface(k_r, jnp.where(rhit, t_r, 0.0), ro, rd)
-    refl = R.f(L.floor)
-    # transparent geoms are blended twice over the (black) reflection buffer
-    a_r = robj[3][3]
-    a_r = jnp.where(a_r >= TRANSPARENT_BELOW, 1.0, 1 - (1 - a_r) ** 2)
-    rc = lit(robj, rp, rn, (-rd[0], -rd[1], -rd[2]), refl, None, None)
-    keep = rhit & (refl > 0)
-    color = tuple(jnp.where(keep, jnp.clip(c + a_r * r, 0, 1), c)
-                  for c, r in zip(color, rc))
-  sky = _sky_color(L, R, d)
+
+  # ---- opaque surface (its colour counts only where `hit`)
+  def opaque():
+    t_hit = jnp.where(hit, t_o, 0.0)
+    p, pl, n, obj = surface(k_op, t_hit, o, d)
+    if floor_obj >= 0:
+      floor_px = (k_op == floor_obj) & hit
+      pix_angle = 2 * math.tan(math.radians(L.fovy) / 2) / (height * supersample)
+      cos_in = jnp.maximum(jnp.abs(_dot(d, n)), 1e-3)
+      footprint = t_hit * pix_angle * (-dz) * MIP_SCALE / cos_in ** MIP_COS_POWER
+      half = (R.f(L.OBJ * floor_obj + 12), R.f(L.OBJ * floor_obj + 13))
+      fc = _floor_color(L, R, pl, footprint, half)
+      tex = tuple(jnp.where(floor_px, c, 1.0) for c in fc)
+    else:
+      tex = None
+    color = lit(obj, p, n, v, 1.0, shadow_vis(p, n), tex)
+    if not (reflection and floor_obj >= 0):
+      return color
+
+    def reflect(color):
+      rd = _sub(d, _scale(n, 2 * _dot(d, n)))
+      ro = _add(p, _scale(n, 1e-4))
+      t_r, k_r = _nearest(L, R, ro, rd, running=running, skip=floor_obj)
+      rhit = (t_r < INF) & floor_px
+      rp, _, rn, robj = surface(k_r, jnp.where(rhit, t_r, 0.0), ro, rd)
+      refl = R.f(L.floor)
+      # transparent geoms are blended twice over the (black) reflection buffer
+      a_r = robj[3][3]
+      a_r = jnp.where(a_r >= TRANSPARENT_BELOW, 1.0, 1 - (1 - a_r) ** 2)
+      rc = lit(robj, rp, rn, (-rd[0], -rd[1], -rd[2]), refl, None, None)
+      keep = rhit & (refl > 0)
+      return tuple(jnp.where(keep, jnp.clip(c + a_r * r, 0, 1), c)
+                   for c, r in zip(color, rc))
+    return when(jnp.max(floor_px.astype(jnp.float32)) > 0, reflect, color)
+
+  color = when(jnp.min(t_o) < INF, opaque)
+  sky = when(jnp.max(t_o) >= INF, lambda: _sky_color(L, R, d))
   color = tuple(jnp.where(hit, c, s) for c, s in zip(color, sky))
 
   # ---- transparent layers (two passes: front to back, then back to front)
@@ -888,11 +909,14 @@ def trace_pixels(L: Layout, R, pix, *, height: int, width: int, shadows: bool,
     c = lit(lobj, lp, ln, v, 1.0, None, None)
     return c, jnp.where(ok, lobj[3][3], 0.0)
 
-  c1, a1 = layer(k_t1, t_1)
-  c2, a2 = layer(k_t2, t_2)
-  blend = lambda dst, c, a: tuple(a * ci + (1 - a) * di for ci, di in zip(c, dst))
-  color = blend(blend(color, c1, a1), c2, a2)      # front to back
-  color = blend(blend(color, c2, a2), c1, a1)      # back to front
+  def layers(color):
+    c1, a1 = layer(k_t1, t_1)
+    c2, a2 = layer(k_t2, t_2)
+    blend = lambda dst, c, a: tuple(a * ci + (1 - a) * di for ci, di in zip(c, dst))
+    color = blend(blend(color, c1, a1), c2, a2)      # front to back
+    return blend(blend(color, c2, a2), c1, a1)       # back to front
+
+  color = when(jnp.min(t_1) < INF, layers, color)
   return color, seg
 
 

@@ -21,7 +21,10 @@ same machine: 192,532), walker without them 663,656 at 1,024, cartpole with them
 449,795 at 1,024. Compiling takes Triton 1–2.5 minutes per batch size (the per-pixel
 code is unrolled over the scene's objects). Not yet done: comparing its frames with
 the XLA path's on a GPU (`python -m benchmarks.jax_render --mode check`); until then
-`jax_render.render_batch` uses it only when asked (`kernel=True`).
+`jax_render.render_batch` uses it only when asked (`kernel=True`). Also not yet
+measured: `skip_empty=True`, with which a program skips the work none of its pixels
+needs (shading when all see sky, the sky when none does, the floor's reflection, the
+transparent layers; same frames, tested in the interpreter).
 """
 
 from __future__ import annotations
@@ -76,7 +79,8 @@ def _compiler_params(num_warps: int):
 def trace_batch(layout: JR.Layout, floats: jax.Array, ints: jax.Array, texels: jax.Array,
                 skies: jax.Array, *, height: int, width: int, shadows: bool,
                 reflection: bool, supersample: int = 1, block: int = BLOCK,
-                num_warps: int = NUM_WARPS, interpret: bool = False):
+                num_warps: int = NUM_WARPS, skip_empty: bool = False,
+                interpret: bool = False):
   """Colour planes and object ids of N envs' rays in one kernel.
 
   Args:
@@ -86,6 +90,8 @@ def trace_batch(layout: JR.Layout, floats: jax.Array, ints: jax.Array, texels: j
     height, width, shadows, reflection, supersample: as `jax_render.render`.
     block: pixels per program (power of two).
     num_warps: Triton warps per program.
+    skip_empty: each program skips the work none of its pixels needs
+      (`trace_pixels`' `skip_empty`; same frames; its speed not yet measured).
     interpret: run the kernel's code without a GPU (Pallas' interpreter).
 
   Returns:
@@ -106,7 +112,8 @@ def trace_batch(layout: JR.Layout, floats: jax.Array, ints: jax.Array, texels: j
     reader = RefReader(env, floats_ref, ints_ref, texels_ref, skies_ref)
     (r, g, b), seg = JR.trace_pixels(layout, reader, pix, height=height, width=width,
                                      shadows=shadows, reflection=reflection,
-                                     supersample=supersample, running=True)
+                                     supersample=supersample, running=True,
+                                     skip_empty=skip_empty)
     at = (env, pl.ds(start, block))
     r_ref[at] = r
     g_ref[at] = g
@@ -126,18 +133,19 @@ def render_batch(scene: Scene, bp: BodyPoses, look: DeviceLook,
                  variables: Mapping[str, jax.Array] | None = None, *, height: int = 84,
                  width: int = 84, shadows: bool = True, reflection: bool = True,
                  supersample: int = 1, block: int = BLOCK, num_warps: int = NUM_WARPS,
-                 interpret: bool = False) -> jax.Array:
+                 skip_empty: bool = False, interpret: bool = False) -> jax.Array:
   """`jax_render.render_batch` in one fused kernel: uint8 (N, H, W, 3).
 
   Args:
     scene, bp, look, variables: as `jax_render.render_batch` (batched).
     height, width, shadows, reflection, supersample: as `jax_render.render`.
-    block, num_warps, interpret: as `trace_batch`.
+    block, num_warps, skip_empty, interpret: as `trace_batch`.
   """
   pack = jax.vmap(JR.pack_env, in_axes=(None, 0, 0, 0 if variables else None))
   floats, ints = pack(scene, bp, look, variables or None)
   colour, _ = trace_batch(JR.layout(scene), floats, ints, scene.floor_texels.reshape(-1),
                           scene.skies.reshape(-1), height=height, width=width,
                           shadows=shadows, reflection=reflection, supersample=supersample,
-                          block=block, num_warps=num_warps, interpret=interpret)
+                          block=block, num_warps=num_warps, skip_empty=skip_empty,
+                          interpret=interpret)
   return JR.image_from_planes(colour, height, width, supersample)
