@@ -136,7 +136,7 @@ def check_kernel(task: str, n: int, size: int, shadows: bool, reflection: bool,
 
 def bench_env(task: str, n: int, size: int, shadows: bool, reflection: bool,
               chunk: int | None, repeats: int, steps: int, scan_steps: int,
-              ls_iterations: int | None = None) -> dict:
+              ls_iterations: int | None = None, kernel: bool = False) -> dict:
   """Agent-steps/s of `make(task, n, renderer="jax")` (module doc, `--mode env`)."""
   import jax
   import jax.numpy as jnp
@@ -144,7 +144,8 @@ def bench_env(task: str, n: int, size: int, shadows: bool, reflection: bool,
   from dmcr_jax import jax_env
   env = dmcr_jax.make(task, num_envs=n, visual_seeds=np.arange(1, n + 1), vary="all",
                       image_size=size, renderer="jax", shadows=shadows,
-                      reflection=reflection, render_chunk=chunk, obs_on_device=True,
+                      reflection=reflection, render_chunk=chunk, render_kernel=kernel,
+                      obs_on_device=True,
                       ls_iterations=ls_iterations)
   low, high = env.single_action_space.low, env.single_action_space.high
   rng = np.random.default_rng(0)
@@ -188,7 +189,8 @@ def bench_env(task: str, n: int, size: int, shadows: bool, reflection: bool,
     scan_times.append(time.perf_counter() - t0)
   step_s = statistics.median(step_times) / steps
   scan_s = statistics.median(scan_times) / scan_steps
-  return dict(batch=n, chunk=penv.render_chunk, shadows=shadows, reflection=reflection,
+  return dict(batch=n, chunk=None if kernel else penv.render_chunk, kernel=kernel,
+              shadows=shadows, reflection=reflection,
               ls_iterations=ls_iterations or "default",
               frame_skip=env.frame_skip, frame_stack=env.frame_stack,
               objects=penv.scene.num_objects, compile_s=compile_s,
@@ -202,7 +204,7 @@ def markdown_env(rows: list[dict]) -> str:
            "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
   for r in rows:
     lines.append(f"| {r['device']} | {r['task']} | {r['size']} | {r['batch']:,} | "
-                 f"{r['chunk'] or '–'} | {r['frame_skip']} | "
+                 f"{'kernel' if r.get('kernel') else r['chunk'] or '–'} | {r['frame_skip']} | "
                  f"{r.get('ls_iterations', 'default')} | "
                  f"{r['compile_s'] + r['scan_compile_s']:.1f} | "
                  f"{r['agent_steps_per_s']:,.0f} | {r['scan_agent_steps_per_s']:,.0f} |")
@@ -233,7 +235,8 @@ def main(argv=None) -> None:
   p.add_argument("--batches", default="1024,4096,16384")
   p.add_argument("--chunk", type=int, default=0, help="envs per chunk (0: all at once)")
   p.add_argument("--kernel", action="store_true",
-                 help="render in the fused GPU kernel (jax_render_kernel)")
+                 help="render in the fused GPU kernel (jax_render_kernel; --mode env: "
+                      "make(..., render_kernel=True))")
   p.add_argument("--block", type=int, default=None, help="kernel: pixels per program")
   p.add_argument("--num-warps", type=int, default=None, help="kernel: warps per program")
   p.add_argument("--skip-empty", action="store_true",
@@ -267,7 +270,7 @@ def main(argv=None) -> None:
     elif env_mode:
       row = dict(common, **bench_env(args.task, n, args.size, *flags, args.chunk or None,
                                      args.repeats, args.steps, args.scan_steps,
-                                     args.ls_iterations))
+                                     args.ls_iterations, args.kernel))
     else:
       chunk = args.chunk if args.chunk and n % args.chunk == 0 else None
       row = dict(common, **bench(args.task, n, args.size, *flags, chunk, args.repeats,
