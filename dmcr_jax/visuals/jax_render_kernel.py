@@ -1,8 +1,8 @@
 """The JAX ray caster as one fused GPU kernel (Pallas on Triton).
 
-Under XLA the ray caster (`jax_render`) is a few hundred mid-sized kernels per
-chunk of envs, and its time goes to moving per-pixel arrays between them (H100,
-walker, 84×84: ~120,000 frames/s, results/jax_render_h100.md). Here the same
+Under XLA the ray caster (`jax_render`) is many mid-sized kernels per chunk of
+envs, and its time goes to moving per-pixel arrays between them (H100, walker,
+84×84, 4,096 envs: 192,532 frames/s, results/jax_render_h100.md). Here the same
 per-pixel code, `jax_render.trace_pixels`, runs inside one Pallas kernel: each
 program draws one block of `block` pixels of one env, with every intermediate in
 registers; only the env's packed numbers (`jax_render.pack_env`, computed by XLA
