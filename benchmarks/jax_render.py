@@ -77,6 +77,13 @@ def inputs(task: str, n: int, states: int = 256, seed: int = 0):
   return scene, bp, JS.device_looks(scene, rm, looks)
 
 
+def _kernel_options(block: int | None, num_warps: int | None, skip_empty: bool) -> dict:
+  """The fused kernel's options as run (None: `jax_render_kernel`'s defaults)."""
+  from dmcr_jax.visuals import jax_render_kernel as JK
+  return dict(block=block or JK.BLOCK, num_warps=num_warps or JK.NUM_WARPS,
+              skip_empty=skip_empty)
+
+
 def bench(task: str, n: int, size: int, shadows: bool, reflection: bool,
           chunk: int | None, repeats: int, kernel: bool = False,
           block: int | None = None, num_warps: int | None = None,
@@ -86,12 +93,8 @@ def bench(task: str, n: int, size: int, shadows: bool, reflection: bool,
   `skip_empty` (programs skip work none of their pixels needs)."""
   import jax
   from dmcr_jax.visuals import jax_render as JR
-  from dmcr_jax.visuals import jax_render_kernel as JK
   scene, bp, look = inputs(task, n)
-  extra = {}
-  if kernel:
-    extra = dict(block=block or JK.BLOCK, num_warps=num_warps or JK.NUM_WARPS,
-                 skip_empty=skip_empty)
+  extra = _kernel_options(block, num_warps, skip_empty) if kernel else {}
   fn = jax.jit(lambda bp, look: JR.render_batch(
       scene, bp, look, height=size, width=size, shadows=shadows, reflection=reflection,
       chunk=chunk, kernel=kernel, **extra))
@@ -122,8 +125,7 @@ def check_kernel(task: str, n: int, size: int, shadows: bool, reflection: bool,
   opts = dict(height=size, width=size, shadows=shadows, reflection=reflection)
   xla = np.asarray(jax.jit(lambda bp, look: JR.render_batch(
       scene, bp, look, kernel=False, **opts))(bp, look)).astype(np.int32)
-  extra = dict(block=block or JK.BLOCK, num_warps=num_warps or JK.NUM_WARPS,
-               skip_empty=skip_empty)
+  extra = _kernel_options(block, num_warps, skip_empty)
   fused = np.asarray(jax.jit(lambda bp, look: JK.render_batch(
       scene, bp, look, interpret=interpret, **extra, **opts))(bp, look)).astype(np.int32)
   diff = np.abs(fused - xla)

@@ -417,6 +417,9 @@ class Layout:
   sky_size: int
 
   OBJ = 24
+  # offsets of an object's numbers within its OBJ floats
+  POS, MAT, SIZE, RGBA, SPECULAR, SHININESS, EMISSION, CASTER, TYPE = (
+      0, 3, 12, 15, 19, 20, 21, 22, 23)
   LIGHT = 20
 
   @property
@@ -488,6 +491,8 @@ def pack_env(scene: Scene, bp: BodyPoses, look: DeviceLook,
   ints = jnp.concatenate([scene.floor_levels[f][None], jnp.reshape(look.sky, (1,)),
                           scene.floor_offset[f], scene.floor_width[f],
                           scene.floor_height[f]]).astype(jnp.int32)
+  L = layout(scene)
+  assert floats.shape == (L.num_floats,) and ints.shape == (L.num_ints,), "Layout drift"
   return floats, ints
 
 
@@ -526,22 +531,13 @@ class ArrayReader:
     return self.skies[index]
 
 
-def _obj_scalars(L: Layout, R, k: int):
-  """Object k's numbers as scalars: position, frame, size, rgba, specular,
-  shininess, emission, casts-shadow flag."""
-  b = L.OBJ * k
-  f = lambda i: R.f(b + i)
-  return ((f(0), f(1), f(2)), tuple(f(3 + i) for i in range(9)),
-          (f(12), f(13), f(14)), (f(15), f(16), f(17), f(18)), f(19), f(20), f(21), f(22))
-
-
-def _obj_at(L: Layout, R, k):
-  """The same numbers per pixel for per-pixel object ids `k`, and the type."""
-  base = k * L.OBJ
-  f = lambda i: R.f_at(i, base)
-  return ((f(0), f(1), f(2)), tuple(f(3 + i) for i in range(9)),
-          (f(12), f(13), f(14)), (f(15), f(16), f(17), f(18)), f(19), f(20), f(21),
-          f(23).astype(jnp.int32))
+def _obj_numbers(read):
+  """An object's position, frame, size, rgba, specular, shininess and emission, from
+  `read(i)`, its i-th packed float (`Layout` offsets): scalars for one object, or
+  per pixel for per-pixel object ids."""
+  v = lambda i, n: tuple(read(i + j) for j in range(n))
+  return (v(Layout.POS, 3), v(Layout.MAT, 9), v(Layout.SIZE, 3), v(Layout.RGBA, 4),
+          read(Layout.SPECULAR), read(Layout.SHININESS), read(Layout.EMISSION))
 
 
 # ---------------------------------------------------------------------------
@@ -566,13 +562,16 @@ def running_minima() -> bool:
   return jax.default_backend() != "cpu"
 
 
-def _local_t(L: Layout, R, k: int, o, d, mask=None):
-  """Distances of unit world rays to object k (`INF` where missed or masked)."""
-  pos, mat, size, rgba, _, _, _, caster = _obj_scalars(L, R, k)
+def _local_t(L: Layout, R, k: int, o, d, casters: bool = False):
+  """Distances of unit world rays to object k (`INF` where missed, where the object
+  is invisible, and with `casters` where it casts no shadow)."""
+  read = lambda i: R.f(L.OBJ * k + i)
+  pos, mat, size, rgba = _obj_numbers(read)[:4]
   t = _intersect(L.types[k], _vec_mat(_sub(o, pos), mat), _vec_mat(d, mat), size,
                  unit=True)
-  visible = rgba[3] > 0
-  keep = visible if mask is None else visible & (caster > 0)
+  keep = rgba[3] > 0
+  if casters:
+    keep &= read(Layout.CASTER) > 0
   return jnp.where(keep, t, INF)
 
 
@@ -588,16 +587,13 @@ def _nearest(L: Layout, R, o, d, *, running: bool, casters: bool = False, skip=N
   shadow casters only; `skip` leaves one object out."""
   shape = jnp.shape(d[0])
   objs = [k for k in range(L.num_objects) if k != skip]
-  ts = [_local_t(L, R, k, o, d, mask=True if casters else None) for k in objs]
+  ts = {k: _local_t(L, R, k, o, d, casters) for k in objs}
   if not running:
-    full = []
-    for k in range(L.num_objects):
-      full.append(jnp.full(shape, INF) if k == skip else ts[objs.index(k)])
-    ts = jnp.stack(full)
+    ts = jnp.stack([ts.get(k, jnp.full(shape, INF)) for k in range(L.num_objects)])
     return jnp.min(ts, 0), jnp.argmin(ts, 0).astype(jnp.int32)
   t_best = jnp.full(shape, INF)
   k_best = jnp.zeros(shape, jnp.int32)
-  for k, t in zip(objs, ts):
+  for k, t in ts.items():
     t_best, k_best = _fold(t, k, t_best, k_best)
   return t_best, k_best
 
@@ -611,7 +607,7 @@ def _primary(L: Layout, R, o, d, dz, *, running: bool):
   for k in range(L.num_objects):
     t = _local_t(L, R, k, o, d)
     ts.append(jnp.where(t * -dz < L.znear, INF, t))               # near clip plane
-    opaque.append(R.f(L.OBJ * k + 18) >= TRANSPARENT_BELOW)
+    opaque.append(R.f(L.OBJ * k + Layout.RGBA + 3) >= TRANSPARENT_BELOW)
   if not running:
     ts = jnp.stack(ts)                                            # (K, P)
     op = jnp.stack([jnp.broadcast_to(a, shape) for a in opaque])
@@ -806,8 +802,11 @@ def trace_pixels(L: Layout, R, pix, *, height: int, width: int, shadows: bool,
 
   def surface(k, t, origin, dirs):
     """World point, object-frame point, world normal and numbers of object k."""
-    obj = _obj_at(L, R, k)
-    pos, mat, size, typ = obj[0], obj[1], obj[2], obj[7]
+    base = k * L.OBJ
+    read = lambda i: R.f_at(i, base)
+    obj = _obj_numbers(read)
+    pos, mat, size = obj[:3]
+    typ = read(Layout.TYPE).astype(jnp.int32)
     p = _add(origin, _scale(dirs, t))
     pl = _vec_mat(_sub(p, pos), mat)
     n = _mat_vec(mat, _normal_local(typ, pl, size, present))
@@ -873,7 +872,8 @@ def trace_pixels(L: Layout, R, pix, *, height: int, width: int, shadows: bool,
       pix_angle = 2 * math.tan(math.radians(L.fovy) / 2) / (height * supersample)
       cos_in = jnp.maximum(jnp.abs(_dot(d, n)), 1e-3)
       footprint = t_hit * pix_angle * (-dz) * MIP_SCALE / cos_in ** MIP_COS_POWER
-      half = (R.f(L.OBJ * floor_obj + 12), R.f(L.OBJ * floor_obj + 13))
+      size_at = L.OBJ * floor_obj + Layout.SIZE
+      half = (R.f(size_at), R.f(size_at + 1))
       fc = _floor_color(L, R, pl, footprint, half)
       tex = tuple(jnp.where(floor_px, c, 1.0) for c in fc)
     else:
