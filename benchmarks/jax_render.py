@@ -7,8 +7,9 @@ distinct dm_control states tiled over the batch), it measures, per batch size N:
 the compile time of the jitted batch render and the median run time of
 `--repeats` calls (`block_until_ready`), and reports frames/s. Options choose the
 image size, shadows, reflection, whether the fused GPU kernel renders
-(`--kernel`; `--block` pixels per program, `--num-warps`) and, without it, the
-chunk size (envs per vmapped chunk, bounding memory).
+(`--kernel` / `--no-kernel`; by default it does on a GPU, as `render_batch` does;
+`--block` pixels per program, `--num-warps`, `--no-skip-empty`) and, without it,
+the chunk size (envs per vmapped chunk, bounding memory).
 
 `--mode env` (end to end): `dmcr_jax.make(task, N, renderer="jax")` with visual
 seeds 1 … N, vary="all", the task's frame skip (walker-walk: 2) and stacks of 3,
@@ -77,34 +78,38 @@ def inputs(task: str, n: int, states: int = 256, seed: int = 0):
   return scene, bp, JS.device_looks(scene, rm, looks)
 
 
-def _kernel_options(block: int | None, num_warps: int | None, skip_empty: bool) -> dict:
+def _kernel_options(block: int | None, num_warps: int | None,
+                    skip_empty: bool | None) -> dict:
   """The fused kernel's options as run (None: `jax_render_kernel`'s defaults)."""
   from dmcr_jax.visuals import jax_render_kernel as JK
   return dict(block=block or JK.BLOCK, num_warps=num_warps or JK.NUM_WARPS,
-              skip_empty=skip_empty)
+              skip_empty=JK.SKIP_EMPTY if skip_empty is None else skip_empty)
 
 
 def bench(task: str, n: int, size: int, shadows: bool, reflection: bool,
-          chunk: int | None, repeats: int, kernel: bool = False,
+          chunk: int | None, repeats: int, kernel: bool | None = None,
           block: int | None = None, num_warps: int | None = None,
-          skip_empty: bool = False) -> dict:
-  """Frames/s of `render_batch` (module doc); `kernel`: the fused GPU kernel, with
-  `block` pixels per program, `num_warps` (None: `jax_render_kernel`'s defaults) and
-  `skip_empty` (programs skip work none of their pixels needs)."""
+          skip_empty: bool | None = None) -> dict:
+  """Frames/s of `render_batch` (module doc); `kernel`: the fused GPU kernel (None:
+  on a GPU), with `block` pixels per program, `num_warps` and `skip_empty` (programs
+  skip work none of their pixels needs; None: `jax_render_kernel`'s defaults)."""
   import jax
   from dmcr_jax.visuals import jax_render as JR
+  kernel = JR.use_kernel(kernel)
   scene, bp, look = inputs(task, n)
   extra = _kernel_options(block, num_warps, skip_empty) if kernel else {}
-  fn = jax.jit(lambda bp, look: JR.render_batch(
+  # the scene is an argument, so its texture bank (~120 MB) is not baked into the
+  # program as a constant
+  fn = jax.jit(lambda scene, bp, look: JR.render_batch(
       scene, bp, look, height=size, width=size, shadows=shadows, reflection=reflection,
       chunk=chunk, kernel=kernel, **extra))
   t0 = time.perf_counter()
-  jax.block_until_ready(fn(bp, look))
+  jax.block_until_ready(fn(scene, bp, look))
   compile_s = time.perf_counter() - t0
   times = []
   for _ in range(repeats):
     t0 = time.perf_counter()
-    jax.block_until_ready(fn(bp, look))
+    jax.block_until_ready(fn(scene, bp, look))
     times.append(time.perf_counter() - t0)
   run_s = statistics.median(times)
   return dict(batch=n, chunk=None if kernel else chunk, kernel=kernel, **extra,
@@ -114,7 +119,7 @@ def bench(task: str, n: int, size: int, shadows: bool, reflection: bool,
 
 def check_kernel(task: str, n: int, size: int, shadows: bool, reflection: bool,
                  block: int | None = None, num_warps: int | None = None,
-                 skip_empty: bool = False, interpret: bool = False) -> dict:
+                 skip_empty: bool | None = None, interpret: bool = False) -> dict:
   """The fused kernel's frames against the XLA renderer's (`render_batch(kernel=False)`)
   for n envs of `task` (module doc, `--mode check`): differing channel values,
   frames with any difference, the largest difference."""
@@ -123,11 +128,12 @@ def check_kernel(task: str, n: int, size: int, shadows: bool, reflection: bool,
   from dmcr_jax.visuals import jax_render_kernel as JK
   scene, bp, look = inputs(task, n)
   opts = dict(height=size, width=size, shadows=shadows, reflection=reflection)
-  xla = np.asarray(jax.jit(lambda bp, look: JR.render_batch(
-      scene, bp, look, kernel=False, **opts))(bp, look)).astype(np.int32)
+  xla = np.asarray(jax.jit(lambda scene, bp, look: JR.render_batch(
+      scene, bp, look, kernel=False, **opts))(scene, bp, look)).astype(np.int32)
   extra = _kernel_options(block, num_warps, skip_empty)
-  fused = np.asarray(jax.jit(lambda bp, look: JK.render_batch(
-      scene, bp, look, interpret=interpret, **extra, **opts))(bp, look)).astype(np.int32)
+  fused = np.asarray(jax.jit(lambda scene, bp, look: JK.render_batch(
+      scene, bp, look, interpret=interpret, **extra, **opts))(scene, bp, look)
+                     ).astype(np.int32)
   diff = np.abs(fused - xla)
   return dict(batch=n, **extra, shadows=shadows, reflection=reflection,
               objects=scene.num_objects, values=int(diff.size),
@@ -156,6 +162,9 @@ def bench_env(task: str, n: int, size: int, shadows: bool, reflection: bool,
   env.reset(seed=0)
   jax.block_until_ready(env.step(actions[0])[0])
   compile_s = time.perf_counter() - t0
+  kernel = env.functional.render_kernel
+  print(f"{task}, {n} envs: compiled in {compile_s:.1f} s (kernel={kernel})",
+        file=sys.stderr, flush=True)
 
   step_times = []
   for _ in range(repeats):
@@ -165,6 +174,8 @@ def bench_env(task: str, n: int, size: int, shadows: bool, reflection: bool,
     jax.block_until_ready(obs)
     step_times.append(time.perf_counter() - t0)
 
+  print(f"  env.step: {n * steps / statistics.median(step_times):,.0f} agent-steps/s",
+        file=sys.stderr, flush=True)
   penv = env.functional
   lo, hi = jnp.asarray(low), jnp.asarray(high)
 
@@ -236,13 +247,14 @@ def main(argv=None) -> None:
   p.add_argument("--size", type=int, default=84)
   p.add_argument("--batches", default="1024,4096,16384")
   p.add_argument("--chunk", type=int, default=0, help="envs per chunk (0: all at once)")
-  p.add_argument("--kernel", action="store_true",
-                 help="render in the fused GPU kernel (jax_render_kernel; --mode env: "
-                      "make(..., render_kernel=True))")
+  p.add_argument("--kernel", action=argparse.BooleanOptionalAction, default=None,
+                 help="render in the fused GPU kernel (jax_render_kernel); default: "
+                      "on a GPU, as render_batch; --mode env: make's default, off")
   p.add_argument("--block", type=int, default=None, help="kernel: pixels per program")
   p.add_argument("--num-warps", type=int, default=None, help="kernel: warps per program")
-  p.add_argument("--skip-empty", action="store_true",
-                 help="kernel: programs skip work none of their pixels needs")
+  p.add_argument("--skip-empty", action=argparse.BooleanOptionalAction, default=None,
+                 help="kernel: programs skip work none of their pixels needs "
+                      "(default: on, jax_render_kernel's default)")
   p.add_argument("--no-shadows", action="store_true")
   p.add_argument("--no-reflection", action="store_true")
   p.add_argument("--repeats", type=int, default=3)
@@ -272,7 +284,7 @@ def main(argv=None) -> None:
     elif env_mode:
       row = dict(common, **bench_env(args.task, n, args.size, *flags, args.chunk or None,
                                      args.repeats, args.steps, args.scan_steps,
-                                     args.ls_iterations, args.kernel))
+                                     args.ls_iterations, bool(args.kernel)))
     else:
       chunk = args.chunk if args.chunk and n % args.chunk == 0 else None
       row = dict(common, **bench(args.task, n, args.size, *flags, chunk, args.repeats,

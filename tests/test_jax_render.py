@@ -278,6 +278,16 @@ def test_kernel_frames_equal_xla_frames(bank):
     JK.render_batch(scene, bp, dl, height=10, width=10, block=100, interpret=True)
 
 
+def test_kernel_is_the_gpu_default():
+  """`render_batch` uses the fused kernel on a GPU only (None, its default), refuses
+  it without one when asked (True), and skips it on request (False)."""
+  gpu = jax.default_backend() == "gpu"
+  assert JR.use_kernel(None) is gpu and JR.use_kernel(False) is False
+  if not gpu:
+    with pytest.raises(ValueError, match="needs a GPU"):
+      JR.use_kernel(True)
+
+
 def test_kernel_lowers_for_cuda(bank):
   """The kernel lowers to Triton for a CUDA GPU (Pallas' own lowering, on this
   machine without one): every op of the per-pixel code has a Triton form."""
