@@ -162,7 +162,8 @@ def bench_env(task: str, n: int, size: int, shadows: bool, reflection: bool,
   env.reset(seed=0)
   jax.block_until_ready(env.step(actions[0])[0])
   compile_s = time.perf_counter() - t0
-  kernel = env.functional.render_kernel
+  penv = env.functional
+  kernel = penv.render_kernel
   print(f"{task}, {n} envs: compiled in {compile_s:.1f} s (kernel={kernel})",
         file=sys.stderr, flush=True)
 
@@ -176,7 +177,6 @@ def bench_env(task: str, n: int, size: int, shadows: bool, reflection: bool,
 
   print(f"  env.step: {n * steps / statistics.median(step_times):,.0f} agent-steps/s",
         file=sys.stderr, flush=True)
-  penv = env.functional
   lo, hi = jnp.asarray(low), jnp.asarray(high)
 
   def scanned(penv, state, key):

@@ -987,23 +987,16 @@ def render_with_ids(scene: Scene, bp: BodyPoses, look: DeviceLook,
   return image_from_planes(color, height, width, 1), body.reshape(height, width)
 
 
-def check_kernel_backend() -> None:
-  """Raises ValueError unless JAX's default backend is a GPU (the fused kernel's)."""
-  if jax.default_backend() != "gpu":
+def use_kernel(kernel: bool | None) -> bool:
+  """Whether to render in the fused GPU kernel: None (the default) on a GPU only;
+  True insists (ValueError unless JAX's default backend is a GPU); False never."""
+  gpu = jax.default_backend() == "gpu"
+  if kernel and not gpu:
     raise ValueError(f"the fused render kernel needs a GPU (Pallas on Triton); JAX's "
                      f"backend here is {jax.default_backend()!r}: render without it "
                      f"(kernel=False / render_kernel=False, or None: the kernel on a "
                      f"GPU only)")
-
-
-def use_kernel(kernel: bool | None) -> bool:
-  """Whether to render in the fused GPU kernel: None (the default) on a GPU only;
-  True insists (ValueError without a GPU, `check_kernel_backend`); False never."""
-  if kernel is None:
-    return jax.default_backend() == "gpu"
-  if kernel:
-    check_kernel_backend()
-  return bool(kernel)
+  return gpu if kernel is None else bool(kernel)
 
 
 def render_batch(scene: Scene, bp: BodyPoses, look: DeviceLook,
