@@ -1,6 +1,6 @@
 """Benchmark of the learner (SAC+AUG, CURL, SAC+AE): gradient updates per second.
 
-Times exactly what `train.loop` runs: `loop._update`, a jitted call that scans
+Times exactly what `train` runs: `train.step.learn_jit`, a jitted call that loops
 ``--pairs`` `sac.update_pair`s (two updates each, actor and targets on the
 second) for K agents, each sampling its own batches from its own full device
 replay buffer (random 84×84 frames, 3-frame stacks rebuilt at sampling, as in
@@ -43,6 +43,7 @@ import numpy as np
 
 from benchmarks.augment import device_slug
 from train import loop, replay, sac
+from train import step as train_step
 
 
 def filled_buffers(k: int, capacity: int, size: int, stack: int, action_size: int,
@@ -82,7 +83,7 @@ def scanned_workload(k: int = 1, dtype: str = "float32", agent_loop: str = "vmap
                      batch: int | None = None, pairs: int = 25, size: int = 84,
                      stack: int = 3, action_size: int = 6, capacity: int = 10_000,
                      algo: str = "sac_aug", aug: str | None = None):
-  """`loop._update` for K agents on full random buffers, ready to call repeatedly.
+  """`train.step.learn_jit` for K agents on full random buffers, ready to call repeatedly.
 
   `batch` None takes the algorithm's default; for CURL the frames are rendered
   ``curl_crop + 16`` pixels (`size` is the encoder's input). `aug` None takes
@@ -99,19 +100,20 @@ def scanned_workload(k: int = 1, dtype: str = "float32", agent_loop: str = "vmap
   if algo == "curl":
     size = size + 16
   obs_shape = (size, size, 3 * stack)
-  agents = [_agents(k, obs_shape, action_size, config)]
   buffers = filled_buffers(k, capacity, size, stack, action_size)
-  keys = jax.random.split(jax.random.key(1), k)
-  update = functools.partial(loop._update, pairs=pairs, config=config,
-                             agent_loop=agent_loop)
+  spec = train_step.StepSpec(agents=k, num_envs=1, warmup_steps=0, utd=1.0, sac=config,
+                             agent_loop=agent_loop, low=(-1.0,) * action_size,
+                             high=(1.0,) * action_size)
+  learner = [train_step.init_learner(_agents(k, obs_shape, action_size, config), buffers,
+                                     jax.random.key(1), 0, spec)]
+  update = functools.partial(train_step.learn_jit, pairs=pairs, spec=spec)
 
   def call():
-    agents[0] = update(agents[0], buffers, keys)[0]
-    return agents[0]
+    learner[0] = update(learner[0])   # donated: the buffers pass through unchanged
+    return learner[0].agents
   # The compiled module (its text for benchmarks.profile --by source, its cost for
   # --cost); compiles again.
-  call.compiled = lambda: loop._update.lower(
-      agents[0], buffers, keys, **update.keywords).compile()
+  call.compiled = lambda: train_step.learn_jit.lower(learner[0], **update.keywords).compile()
   call.hlo_text = lambda: call.compiled().as_text()
   return call, config, size
 
@@ -119,7 +121,7 @@ def scanned_workload(k: int = 1, dtype: str = "float32", agent_loop: str = "vmap
 def bench_scanned(k: int, dtype: str, agent_loop: str, batch: int | None, pairs: int,
                   size: int, stack: int, action_size: int, capacity: int, seconds: float,
                   algo: str = "sac_aug", aug: str | None = None) -> dict:
-  """Updates/s of `loop._update` for K agents (`scanned_workload`); one result row."""
+  """Updates/s of `train.step.learn_jit` for K agents (`scanned_workload`); one result row."""
   call, config, size = scanned_workload(k, dtype, agent_loop, batch, pairs, size, stack,
                                         action_size, capacity, algo, aug)
   t0 = time.perf_counter()

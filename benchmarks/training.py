@@ -1,4 +1,4 @@
-"""End-to-end training time: one `train` run (cartpole-balance by default), timed.
+"""End-to-end training time: one `train` run (cartpole-balance by default), timed, beside its learner alone.
 
 Runs the `train` command's parse and `train.loop.train` in this process with the
 arguments given (unknown ones go to `train`; see ``python -m train --help``) on
@@ -8,9 +8,15 @@ fresh run folder, and reports: the wall time of the training loop (compilation
 included, as `train` reports it) and of the whole run (env start-up too),
 transitions per second per agent, the first training step (and its loop time)
 at which an episode's return reached ``--threshold``, and the final return
-(mean of the last episodes, as `train` computes it). There is no baseline in the
-same run: the paper's reference is a return (SAC+AUG, cartpole-balance: 987.4),
-not a time.
+(mean of the last episodes, as `train` computes it).
+
+The baseline in the same run: the learner alone (`benchmarks.learner`'s scanned
+updates of the same agents, batch, dtype and augmentation on full random
+buffers). The end-to-end rate compared with it is the steady one: transitions
+per second per agent between the first and the last episode ends after the
+warm-up (so compilation and the random-action phase are left out), times `utd`;
+`ratio` = that rate over the learner's updates/s. 1.0 means the env costs the
+training loop nothing.
 
     python -m benchmarks.training --out benchmarks/results/train_h100.jsonl
     python -m benchmarks.training --steps 2000 --num-envs 4 --quality fastest --out /tmp/t.jsonl
@@ -54,12 +60,44 @@ def first_reaching(log_rows: list[dict], threshold: float) -> dict | None:
               episode_return=float(r["episode_return"]))
 
 
-def run(train_argv: list[str], threshold: float, run_dir: str) -> dict:
-  """Trains with `train_argv` into `run_dir`; one result row."""
+def steady_rate(log_rows: list[dict], after_step: int) -> float | None:
+  """Transitions/s per agent between the first and the last episode end past
+  `after_step` (None with fewer than two such ends)."""
+  ends = sorted({(int(r["step"]), float(r["wall_s"])) for r in log_rows
+                 if int(r["step"]) > after_step})
+  if len(ends) < 2 or ends[-1][1] <= ends[0][1]:
+    return None
+  (s0, w0), (s1, w1) = ends[0], ends[-1]
+  return (s1 - s0) / (w1 - w0)
+
+
+def learner_alone(cfg, seconds: float = 3.0) -> dict:
+  """`benchmarks.learner`'s row for the run's learner (agents, dtype, loop, batch,
+  augmentation, frames) on full random buffers."""
+  import jax
+  from benchmarks import learner
+  from dmcr_jax import models
+  on_cpu = jax.default_backend() == "cpu"
+  task = models.load(cfg.task)
+  k = len(cfg.agents())
+  return learner.bench_scanned(
+      k, cfg.sac.compute_dtype, cfg.agent_loop or ("vmap" if on_cpu else "map"),
+      cfg.sac.batch_size, 25, cfg.image_size if cfg.sac.algo != "curl" else cfg.sac.curl_crop,
+      cfg.frame_stack, task.action_size, 10_000, seconds, cfg.sac.algo,
+      cfg.sac.aug if cfg.sac.algo == "sac_aug" else None)
+
+
+def run(train_argv: list[str], threshold: float, run_dir: str, baseline: bool = True) -> dict:
+  """Trains with `train_argv` into `run_dir` (after timing the learner alone);
+  one result row."""
   from train import __main__ as train_cli
   from train import loop
 
   cfg, _ = train_cli.parse(list(train_argv) + ["--out", run_dir])
+  alone = learner_alone(cfg) if baseline else None
+  if alone:
+    print(f"learner alone: {alone['updates_per_s_per_agent']:.1f} updates/s per agent",
+          flush=True)
   t0 = time.perf_counter()
   summary = loop.train(cfg, progress=False)
   process_s = time.perf_counter() - t0
@@ -70,6 +108,10 @@ def run(train_argv: list[str], threshold: float, run_dir: str) -> dict:
   import jax
   device = jax.devices()[0]
   agents = len(cfg.agents())
+  # After the warm-up and a little more: the first episode end past it still
+  # carries the update's compilation, the rate starts there.
+  steady = steady_rate(log_rows, cfg.warmup_steps)
+  updates_alone = alone and alone["updates_per_s_per_agent"]
   return dict(
       bench="train", device=device.device_kind, platform=device.platform,
       jax=jax.__version__, cpus=os.cpu_count(), task=cfg.task, steps=summary["steps"],
@@ -77,6 +119,10 @@ def run(train_argv: list[str], threshold: float, run_dir: str) -> dict:
       dtype=cfg.sac.compute_dtype, batch_size=cfg.sac.batch_size, utd=cfg.utd,
       action_repeat=cfg.action_repeat, wall_s=summary["wall_s"], process_s=process_s,
       transitions_per_s=summary["steps"] / summary["wall_s"] if summary["wall_s"] else None,
+      renderer=cfg.renderer, physics=cfg.physics_device() or jax.default_backend(),
+      steady_transitions_per_s=steady,
+      learner_updates_per_s=updates_alone,
+      ratio=(steady * cfg.utd / updates_alone) if steady and updates_alone else None,
       episodes=len(log_rows), final_return=sum(finals) / len(finals) if finals else None,
       threshold=threshold, step_at_threshold=hit and hit["step"],
       time_to_threshold_s=hit and hit["wall_s"], interrupted=summary["interrupted"],
@@ -86,17 +132,24 @@ def run(train_argv: list[str], threshold: float, run_dir: str) -> dict:
 
 def markdown(rows: list[dict]) -> str:
   """The rows as one Markdown table."""
-  lines = ["| device | task | agents × envs | steps | dtype | quality | loop wall s "
-           "| whole run s | transitions/s | first ≥ threshold (step, s) | final return | UTC |",
-           "|---|---|---|---:|---|---|---:|---:|---:|---|---:|---|"]
+  lines = ["| device | task | renderer | physics | agents × envs | steps | dtype | quality "
+           "| loop wall s | whole run s | transitions/s | steady transitions/s "
+           "| learner alone updates/s | ratio | first ≥ threshold (step, s) | final return "
+           "| UTC |",
+           "|---|---|---|---|---|---:|---|---|---:|---:|---:|---:|---:|---:|---|---:|---|"]
+  num = lambda v, f: "–" if v is None else format(v, f)
   for r in rows:
     hit = (f"≥ {r['threshold']:g}: {r['step_at_threshold']:,}, {r['time_to_threshold_s']:.0f} s"
            if r.get("step_at_threshold") is not None else f"never ≥ {r['threshold']:g}")
     final = "–" if r.get("final_return") is None else f"{r['final_return']:.1f}"
-    lines.append(f"| {r['device']} | {r['task']} | {r['agents']} × {r['num_envs']} | "
-                 f"{r['steps']:,} | {r['dtype']} | {r['quality']} | {r['wall_s']:,.1f} | "
-                 f"{r['process_s']:,.1f} | {r['transitions_per_s'] or 0:,.1f} | {hit} | "
-                 f"{final} | {r['time_utc'][11:16]} |")
+    quality = r["quality"] if r.get("renderer", "pool") == "pool" else "–"
+    lines.append(f"| {r['device']} | {r['task']} | {r.get('renderer', 'pool')} | "
+                 f"{r.get('physics', '–')} | {r['agents']} × {r['num_envs']} | "
+                 f"{r['steps']:,} | {r['dtype']} | {quality} | {r['wall_s']:,.1f} | "
+                 f"{r['process_s']:,.1f} | {r['transitions_per_s'] or 0:,.1f} | "
+                 f"{num(r.get('steady_transitions_per_s'), ',.1f')} | "
+                 f"{num(r.get('learner_updates_per_s'), ',.1f')} | "
+                 f"{num(r.get('ratio'), '.2f')} | {hit} | {final} | {r['time_utc'][11:16]} |")
   return "\n".join(lines) + "\n"
 
 
@@ -115,13 +168,15 @@ def main(argv=None) -> None:
                       "in the system's temporary folder; its log.csv and learning curve "
                       "are copied beside --out)")
   p.add_argument("--out", default=None, help="JSONL path (appended to); .md beside")
+  p.add_argument("--no-baseline", action="store_true",
+                 help="skip timing the learner alone (and the ratio)")
   a, train_argv = p.parse_known_args(argv)
   if "--resume" in train_argv:
     p.error("--resume is not timed here: start a new run")
   if a.run_dir and os.path.exists(os.path.join(a.run_dir, "checkpoints")):
     p.error(f"--run-dir {a.run_dir} already holds a run; give a new folder")
   run_dir = a.run_dir or tempfile.mkdtemp(prefix="dmcr_train_bench_")
-  row = run(list(DEFAULT_TRAIN_ARGS) + train_argv, a.threshold, run_dir)
+  row = run(list(DEFAULT_TRAIN_ARGS) + train_argv, a.threshold, run_dir, not a.no_baseline)
   print(json.dumps(row), flush=True)
   rows = [row]
   if a.out:

@@ -27,6 +27,19 @@ Per agent step of the pool env, for the whole batch:
 `env.timings` accumulates the seconds spent in each part (the JAX env: "step",
 the one jitted call, and "transfer", the observations and info to the host).
 
+`step` is `step_async` (checks the actions and dispatches the physics, without
+waiting for it) followed by `step_wait` (waits for the physics, renders,
+returns gymnasium's step tuple), as in gymnasium's `AsyncVectorEnv`: a caller can
+dispatch its own device work between the two (a training loop dispatches its
+gradient updates there), so that work and the env step run at the same time.
+
+Physics device (`physics_device=`): None runs the physics on JAX's default
+device; "cpu" on the host's CPU (XLA:CPU), where a small batch (a few dozen envs)
+steps in a fraction of the time an accelerator's launch latency allows, and off
+the accelerator's queue, so a learner's updates on the accelerator do not wait
+behind it (and it does not wait behind them). Rewards, observations and pixels are
+the same either way up to float32 rounding (`tests/test_env.py`).
+
 Auto-reset follows gymnasium's NEXT_STEP mode: the step that ends an episode
 returns its last observation, reward and `truncated=True`; the env's next step
 ignores its action and returns the new episode's first observation with reward
@@ -50,7 +63,7 @@ from __future__ import annotations
 
 import functools
 import time
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 import gymnasium
 import jax
@@ -101,7 +114,8 @@ def _seed_source(visual_seeds, num_envs: int) -> SeedRange | np.ndarray:
 
 
 @functools.lru_cache(maxsize=64)
-def _physics_fns(task, num_envs: int, frame_skip: int, seed_range: SeedRange | None):
+def _physics_fns(task, num_envs: int, frame_skip: int, seed_range: SeedRange | None,
+                 donate: bool):
   """Jitted (init, step) for N envs of `task`, shared by every env built alike.
 
   `models.load` returns one `Task` object per name and solver budget, so envs
@@ -110,10 +124,9 @@ def _physics_fns(task, num_envs: int, frame_skip: int, seed_range: SeedRange | N
   the functions' last argument; a `SeedRange` (seed_range) is static.
   """
   pick = (lambda arg: arg) if seed_range is None else (lambda arg: seed_range)
-  donate = () if jax.default_backend() == "cpu" else (0,)
   init = jax.jit(lambda key, arg: physics_env.init(task, pick(arg), key, num_envs))
   step = jax.jit(lambda es, a, arg: physics_env.step(task, pick(arg), frame_skip, es, a),
-                 donate_argnums=donate)
+                 donate_argnums=(0,) if donate else ())
   return init, step
 
 
@@ -121,6 +134,8 @@ RENDERERS = ("pool", "jax")
 """What `make(renderer=...)` accepts: the CPU render pool (MuJoCo's own pixels) or
 the JAX ray caster (physics, rendering and stacking in one jitted call)."""
 _POOL_ONLY = ("workers", "quality", "gl", "copy_obs")
+PHYSICS_DEVICES = (None, "cpu")
+"""What `make(physics_device=...)` accepts: JAX's default device, or the host CPU."""
 _JAX_ONLY = ("shadows", "reflection", "render_chunk", "render_kernel", "obs_on_device")
 
 
@@ -135,8 +150,14 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
 
   def __init__(self, task: str, num_envs: int, visual_seeds: Any, vary, frame_skip,
                frame_stack: int, image_size, camera, seed: int,
-               solver_iterations: int | None, ls_iterations: int | None):
+               solver_iterations: int | None, ls_iterations: int | None,
+               physics_device: str | None = None):
     domain, _ = models.split_name(task)
+    if physics_device not in PHYSICS_DEVICES:
+      raise ValueError(f"physics_device must be None (JAX's default device) or 'cpu', "
+                       f"got {physics_device!r}")
+    self.physics_device = physics_device
+    self._physics_on = jax.devices("cpu")[0] if physics_device == "cpu" else jax.devices()[0]
     n = positive_int("num_envs", num_envs)
     self.frame_skip = positive_int(
         "frame_skip", default_frame_skip(task) if frame_skip is None else frame_skip)
@@ -161,6 +182,7 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     self._key = jax.random.key(int(seed))
     self._es = None
     self._obs = None
+    self._pending = None
     self.reset_timings()
 
   def _check_seeds(self, seeds):
@@ -172,8 +194,14 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     argument (one compilation serves any of them); a `SeedRange` is static."""
     fixed = not isinstance(self.seeds, SeedRange)
     self._init, self._step = _physics_fns(self.task, self.num_envs, self.frame_skip,
-                                          None if fixed else self.seeds)
-    self._seed_arg = jnp.asarray(self.seeds, jnp.int32) if fixed else None
+                                          None if fixed else self.seeds,
+                                          self._physics_on.platform != "cpu")
+    self._seed_arg = self._on_physics(np.asarray(self.seeds, np.int32)) if fixed else None
+
+  def _on_physics(self, tree):
+    """`tree` committed to the physics device (the jitted physics runs where its
+    inputs are)."""
+    return jax.device_put(tree, self._physics_on)
 
   def set_visuals(self, visual_seeds: Any, vary: str | Sequence[str] | None = None) -> None:
     """Changes the looks: new visual seeds (and optionally `vary`) for every env.
@@ -194,7 +222,7 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     seeds = self._check_seeds(_seed_source(visual_seeds, self.num_envs))
     self.seeds, self.vary = seeds, vary
     self._use_seeds()
-    self._es = self._obs = None
+    self._es = self._obs = self._pending = None
 
   def set_state(self, state: physics_env.EnvState):
     """Replaces every env's state (e.g. to render one physical state under many
@@ -218,7 +246,7 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
         np.shape(a) != np.shape(b) for a, b in zip(jax.tree.leaves(state),
                                                    jax.tree.leaves(self._es))):
       raise ValueError("state must be an EnvState shaped like env.state")
-    return self._start_from(jax.tree.map(jnp.asarray, state))
+    return self._start_from(self._on_physics(state))
 
   # gymnasium API -------------------------------------------------------------
 
@@ -240,7 +268,52 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
         raise ValueError(f"seed must be an int or None, got {seed!r}")
       self._key = jax.random.key(int(seed))
     self._key, key = jax.random.split(self._key)
-    return self._reset(key)
+    self._pending = None
+    return self._reset(self._on_physics(key))
+
+  def step(self, actions):
+    """One agent step of every env (NEXT_STEP auto-reset, see the module docstring):
+    `step_async(actions)`, then `step_wait()`.
+
+    Args:
+      actions: float (N, action_size), finite (clipped to the action bounds).
+
+    Returns:
+      (observations, rewards, terminated, truncated, info).
+
+    Raises:
+      ValueError: wrong shape or non-finite actions (nothing is stepped).
+      RuntimeError: `step` before `reset`.
+    """
+    self.step_async(actions)
+    return self.step_wait()
+
+  def step_async(self, actions) -> None:
+    """Checks the actions and dispatches the physics of one agent step, without
+    waiting for it; `step_wait` completes the step.
+
+    Raises:
+      ValueError: wrong shape or non-finite actions (nothing is stepped).
+      RuntimeError: before `reset`, or a step already pending.
+    """
+    if self._es is None:
+      raise RuntimeError("call reset() before step()")
+    if self._pending is not None:
+      raise RuntimeError("step_async() called twice: call step_wait() first")
+    actions = self._on_physics(self._check_actions(actions))
+    t0 = time.perf_counter()
+    resetting = self._es.needs_reset
+    self._pending = (t0, resetting) + tuple(self._step(self._es, actions, self._seed_arg))
+
+  def step_wait(self):
+    """Completes the step `step_async` began (as `step`'s returns)."""
+    if self._pending is None:
+      raise RuntimeError("step_wait() without a pending step_async()")
+    pending, self._pending = self._pending, None
+    obs, host = self._finish_step(*pending)
+    self.timed_steps += 1
+    terminated = np.zeros(self.num_envs, bool)
+    return obs, host["reward"], terminated, host["truncated"], self._info(host)
 
   def render(self) -> np.ndarray | None:
     """The latest frame of every env, uint8 (N, H, W, 3) (None before reset)."""
@@ -313,10 +386,12 @@ class PixelVectorEnv(_PixelEnvBase):
                frame_stack: int = 3, image_size: int | tuple[int, int] = 84,
                camera: int | str = 0, seed: int = 0, *, workers: int | None = None,
                quality: str = "exact", gl: str | None = None, copy_obs: bool = True,
-               solver_iterations: int | None = None, ls_iterations: int | None = None):
+               solver_iterations: int | None = None, ls_iterations: int | None = None,
+               physics_device: str | None = None):
     self._pool = None
     super().__init__(task, num_envs, visual_seeds, vary, frame_skip, frame_stack,
-                     image_size, camera, seed, solver_iterations, ls_iterations)
+                     image_size, camera, seed, solver_iterations, ls_iterations,
+                     physics_device)
     n = self.num_envs
     self.copy_obs = bool(copy_obs)
     self._pool = RenderPool(task, max_batch=n, height=self.height, width=self.width,
@@ -327,34 +402,12 @@ class PixelVectorEnv(_PixelEnvBase):
     self._look_seeds = None
     self._needs_reset = np.zeros(n, bool)
 
-  def step(self, actions, *, while_rendering: Callable[[], Any] | None = None):
-    """One agent step of every env (NEXT_STEP auto-reset, see the module docstring).
-
-    Args:
-      actions: float (N, action_size), finite (clipped to the action bounds).
-      while_rendering: called once the physics results are on the host and
-        before the render workers start: a place to dispatch asynchronous device
-        work (the training loop dispatches its updates there, so the accelerator
-        computes them while the CPU renders). Its time counts as "render".
-
-    Returns:
-      (observations, rewards, terminated, truncated, info).
-
-    Raises:
-      ValueError: wrong shape or non-finite actions (nothing is stepped).
-      RuntimeError: `step` before `reset`.
-    """
-    if self._es is None:
-      raise RuntimeError("call reset() before step()")
-    actions = self._check_actions(actions)
-    t0 = time.perf_counter()
-    es, reward, truncated = self._step(self._es, actions, self._seed_arg)
+  def _finish_step(self, t0, resetting, es, reward, truncated):
+    """Waits for the physics, fetches what rendering needs, renders and stacks."""
     self._es = jax.block_until_ready(es)
     t1 = time.perf_counter()
     host = self._fetch(self._es, reward, truncated)
     t2 = time.perf_counter()
-    if while_rendering is not None:
-      while_rendering()
     stacked = self._render(host, restart=self._needs_reset)
     t3 = time.perf_counter()
     obs = self._obs = self._output(stacked)
@@ -362,9 +415,7 @@ class PixelVectorEnv(_PixelEnvBase):
     t4 = time.perf_counter()
     for part, dt in zip(TIMING_PARTS, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
       self.timings[part] += dt
-    self.timed_steps += 1
-    terminated = np.zeros(self.num_envs, bool)
-    return obs, host["reward"], terminated, host["truncated"], self._info(host)
+    return obs, host
 
   def close(self, **kwargs) -> None:
     """Stops the render workers (idempotent)."""
@@ -451,51 +502,36 @@ class JaxPixelVectorEnv(_PixelEnvBase):
                camera: int | str = 0, seed: int = 0, *, shadows: bool = True,
                reflection: bool = True, render_chunk: int | None = None,
                render_kernel: bool | None = False, obs_on_device: bool = False,
-               solver_iterations: int | None = None, ls_iterations: int | None = None):
+               solver_iterations: int | None = None, ls_iterations: int | None = None,
+               physics_device: str | None = None):
     super().__init__(task, num_envs, visual_seeds, vary, frame_skip, frame_stack,
-                     image_size, camera, seed, solver_iterations, ls_iterations)
+                     image_size, camera, seed, solver_iterations, ls_iterations,
+                     physics_device)
+    self._render_on = jax.devices()[0]
     if render_chunk is not None:
       render_chunk = positive_int("render_chunk", render_chunk)
     self._options = dict(camera=camera, shadows=bool(shadows), reflection=bool(reflection),
                          render_chunk=render_chunk, render_kernel=render_kernel)
     self.obs_on_device = bool(obs_on_device)
     self._ps = None
-    self._donate = jax.default_backend() != "cpu"
     self._use_seeds()
 
-  def step(self, actions, *, while_rendering: Callable[[], Any] | None = None):
-    """One agent step of every env (NEXT_STEP auto-reset, see the module docstring).
-
-    Args:
-      actions: float (N, action_size), finite (clipped to the action bounds).
-      while_rendering: called once, after the step is dispatched and before its
-        results are awaited (as for `PixelVectorEnv.step`: a place to dispatch
-        other device work). Its time counts as "step".
-
-    Returns:
-      (observations, rewards, terminated, truncated, info); observations are a
-      NumPy array, or a device `jax.Array` with `obs_on_device=True`.
-
-    Raises:
-      ValueError: wrong shape or non-finite actions (nothing is stepped).
-      RuntimeError: `step` before `reset`.
-    """
-    if self._ps is None:
-      raise RuntimeError("call reset() before step()")
-    actions = self._check_actions(actions)
-    t0 = time.perf_counter()
-    fn = jax_env.step_donated if self._donate else jax_env.step
-    ps, reward, truncated = fn(self.functional, self._ps, jnp.asarray(actions))
-    if while_rendering is not None:
-      while_rendering()
+  def _finish_step(self, t0, resetting, es, reward, truncated):
+    """The step's frames and stacks: with the physics on the render device, the
+    fused call `_step` already made them; else the physics moves to the render
+    device and `jax_env.observe` renders there. Then the transfer to the host."""
+    if isinstance(es, jax_env.PixelState):
+      ps, es = es, None
+    else:
+      physics = jax.device_put(es, self._render_on)
+      ps = jax_env.observe(self.functional, self._ps, physics,
+                           jax.device_put(resetting, self._render_on))
     jax.block_until_ready(ps)
     t1 = time.perf_counter()
-    obs, host = self._adopt(ps, reward, truncated)
+    obs, host = self._adopt(ps, reward, truncated, es=es)
     self.timings["step"] += t1 - t0
     self.timings["transfer"] += time.perf_counter() - t1
-    self.timed_steps += 1
-    terminated = np.zeros(self.num_envs, bool)
-    return obs, host["reward"], terminated, host["truncated"], self._info(host)
+    return obs, host
 
   @property
   def pixel_state(self) -> jax_env.PixelState | None:
@@ -513,25 +549,32 @@ class JaxPixelVectorEnv(_PixelEnvBase):
         self.task, self.num_envs, self.seeds, self.vary, self.frame_skip, self.frame_stack,
         self.height, self.width, **self._options)
     self._ps = None
+    if self._physics_on == self._render_on:     # physics, frames and stacks in one call
+      fused = jax_env.step if jax.default_backend() == "cpu" else jax_env.step_donated
+      self._step = lambda es, actions, seed_arg: fused(self.functional, self._ps, actions)
 
   def _reset(self, key):
     # The pool env's jitted `physics_env.init` (shared compilation), then the
     # looks gathered on device and fresh stacks (`jax_env.start`, as `set_state`).
     # The same as `jax_env.reset(self.functional, key)`.
-    physics = self._init(key, self._seed_arg)
+    es = self._init(key, self._seed_arg)
+    physics = jax.device_put(es, self._render_on)
     look = self.functional.looks_of(physics.visual_seed)
-    return self._adopt(jax_env.start(self.functional, physics, look))
+    return self._adopt(jax_env.start(self.functional, physics, look), es=es)
 
   def _start_from(self, es: physics_env.EnvState):
     """Fresh stacks from `es`; each env's look follows its `visual_seed`."""
     rm, scene = jax_env.scene_of(self.domain, self.camera)
     look = jax_env.host_looks(scene, rm, jax.device_get(es.visual_seed), self.vary)
-    return self._adopt(jax_env.start(self.functional, es, look))
+    return self._adopt(jax_env.start(self.functional, jax.device_put(es, self._render_on),
+                                     look), es=es)
 
-  def _adopt(self, ps: jax_env.PixelState, reward=None, truncated=None):
-    """Makes `ps` current; (obs, host fields) or, without a reward, (obs, info)."""
-    self._ps, self._es = ps, ps.physics
-    fields = self._host_fields(ps.physics, reward, truncated)
+  def _adopt(self, ps: jax_env.PixelState, reward=None, truncated=None, es=None):
+    """Makes `ps` (and `es`, its physics on the physics device; default
+    `ps.physics`) current; (obs, host fields) or, without a reward, (obs, info)."""
+    self._ps = ps
+    self._es = ps.physics if es is None else es
+    fields = self._host_fields(self._es, reward, truncated)
     host = jax.device_get(fields)
     self._obs = ps.obs if self.obs_on_device else to_host(ps.obs)
     return (self._obs, host) if reward is not None else (self._obs, self._info(host))
@@ -585,7 +628,10 @@ def make(task: str, num_envs: int = 1, visual_seeds: Any = 0,
       kernel on a GPU only), `obs_on_device`
       (default False; True returns observations as device arrays, skipping
       their transfer). Both:
-      `solver_iterations`, `ls_iterations` for the physics (`models.load`).
+      `solver_iterations`, `ls_iterations` for the physics (`models.load`);
+      `physics_device` (None: JAX's default device; "cpu": the host CPU, see the
+      module docstring; with renderer="jax" the frames are still rendered on
+      the default device).
 
   Returns:
     A `PixelVectorEnv` or a `JaxPixelVectorEnv` (gymnasium `VectorEnv`s); call

@@ -10,6 +10,9 @@ the table of looks the visual seeds select, and static sizes) offers
   auto-reset, next visual seeds), the looks of the envs that reset, one
   `jax_render.render_batch` of the post-step body poses and task model variables
   (targets), and the frame stacks;
+* `env.observe(state, physics, resetting) -> PixelState` — the render half of
+  `step` alone: the frames and stacks of a stepped physics state (for physics
+  stepped elsewhere, e.g. on the host CPU);
 * `env.start(physics, look) -> PixelState` — fresh stacks for a given physics
   state (reset and `set_state` use it).
 
@@ -176,6 +179,21 @@ class PixelEnv:
     resetting = state.physics.needs_reset
     physics, reward, truncated = physics_env.step(self.task, self._seeds, self.frame_skip,
                                                   state.physics, actions)
+    return self.observe(state, physics, resetting), reward, truncated
+
+  def observe(self, state: PixelState, physics: physics_env.EnvState,
+              resetting: jax.Array) -> PixelState:
+    """The render half of `step`: the new frames and stacks after `physics`.
+
+    Args:
+      state: the `PixelState` before the step.
+      physics: the `EnvState` after `physics_env.step` of `state.physics`.
+      resetting: bool (N,), the envs that began a new episode in that step
+        (`state.physics.needs_reset`).
+
+    Returns:
+      The next `PixelState`.
+    """
     look = state.look
     if self.seed_range is not None:     # fixed seeds keep their look across resets
       pick = lambda new, old: jnp.where(
@@ -185,7 +203,7 @@ class PixelEnv:
     shifted = jnp.concatenate([state.obs[..., 3:], frame], axis=-1)
     obs = jnp.where(resetting[:, None, None, None],
                     jnp.tile(frame, (1, 1, 1, self.frame_stack)), shifted)
-    return PixelState(physics=physics, look=look, obs=obs), reward, truncated
+    return PixelState(physics=physics, look=look, obs=obs)
 
 
 def host_looks(scene: JS.Scene, rm: rmod.RenderModel, seeds, vary) -> JS.DeviceLook:
@@ -278,5 +296,6 @@ def make_env(task: Task, num_envs: int, seeds: SeedRange | np.ndarray, vary,
 reset = jax.jit(lambda env, key: env.reset(key))
 start = jax.jit(lambda env, physics, look: env.start(physics, look))
 step = jax.jit(lambda env, state, actions: env.step(state, actions))
+observe = jax.jit(lambda env, state, physics, resetting: env.observe(state, physics, resetting))
 step_donated = jax.jit(lambda env, state, actions: env.step(state, actions),
                        donate_argnums=(1,))

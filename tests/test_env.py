@@ -117,22 +117,23 @@ def test_same_seed_same_pixels(env):
   assert not np.array_equal(env.reset()[0], a[0])
 
 
-def test_while_rendering_runs_once_between_physics_and_render(env):
-  # The training loop dispatches its updates through this hook; it must see the
-  # stepped physics, run once per step and leave the step's results unchanged.
+def test_step_async_then_step_wait_is_step(env):
+  # The training loop dispatches its updates between the two halves; together
+  # they must give exactly `step`, and be called in order.
   rng = np.random.default_rng(4)
   actions = [_actions(rng, env) for _ in range(3)]
   env.reset(seed=5)
   plain = [env.step(a) for a in actions]
   env.reset(seed=5)
-  seen = []
+  with pytest.raises(RuntimeError, match="without a pending"):
+    env.step_wait()
   for a, want in zip(actions, plain):
-    before = np.asarray(env.state.task.data.qpos)
-    got = env.step(a, while_rendering=lambda: seen.append(np.asarray(env.state.task.data.qpos)))
-    assert not np.array_equal(seen[-1], before)  # physics already stepped
-    np.testing.assert_array_equal(got[0], want[0])
-    np.testing.assert_array_equal(got[1], want[1])
-  assert len(seen) == len(actions)
+    env.step_async(a)
+    with pytest.raises(RuntimeError, match="twice"):
+      env.step_async(a)
+    got = env.step_wait()
+    for g, w in zip(got[:4], want[:4]):
+      np.testing.assert_array_equal(g, w)
 
 
 def test_set_visuals_and_set_state_act_like_a_fresh_env(env):

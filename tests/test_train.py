@@ -116,44 +116,66 @@ def test_interrupted_run_resumes_where_it_stopped(tmp_path):
   jax.config.update("jax_compilation_cache_dir", None)
 
 
+def test_host_and_device_drivers_train_identical_agents(tmp_path):
+  # One training step, two drivers: fed the same frames (the ray caster's), the
+  # host driver (jitted act/learn/store around the env) and the device driver
+  # (the same functions scanned) train bit-identical agents from one seed.
+  agents = {}
+  for physics in ("cpu", "device"):   # on a CPU: host driver, then device driver
+    cfg = loop.TrainConfig(steps=24, num_envs=2, checkpoint_every=0, renderer="jax",
+                           physics=physics, chunk_steps=4, out_dir=str(tmp_path / physics),
+                           **{k: v for k, v in CFG.items() if k not in ("quality", "workers")})
+    loop.train(cfg, progress=False)
+    _, agents[physics], step = loop.load_run(cfg.out_dir)
+    assert step == 24 and int(agents[physics].step[0]) > 0  # updates ran
+  for a, b in zip(jax.tree.leaves(agents["cpu"]), jax.tree.leaves(agents["device"])):
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
 def test_agents_sharded_over_two_devices_or_mapped_match_one_vmapped_call():
   script = textwrap.dedent("""
+      import dataclasses
       import jax, jax.numpy as jnp, numpy as np
-      from train import loop, replay, sac
+      from train import loop, replay, sac, step
       assert jax.device_count() == 2
       cfg = sac.SACConfig(batch_size=8, conv_channels=4, feature_dim=8, hidden_dim=16)
+      spec = step.StepSpec(agents=2, num_envs=2, warmup_steps=0, utd=1.0, sac=cfg,
+                           agent_loop="vmap", low=(-1.0,), high=(1.0,))
       agents = jax.vmap(lambda k: sac.init_agent(k, (16, 16, 9), 1, cfg))(
           jax.random.split(jax.random.key(0), 2))
       one = replay.init(64, 2, (16, 16, 3), 1, 3)
       buffers = jax.tree.map(lambda x: jnp.broadcast_to(x, (2,) + x.shape), one)
+      learner = step.init_learner(agents, buffers, jax.random.key(3), 0, spec)
       rng = np.random.default_rng(0)
       for t in range(12):
-        buffers = loop._add(buffers, jnp.asarray(rng.integers(0, 255, (2, 2, 16, 16, 3), np.uint8)),
-                            jnp.full((2, 2), t % 6 == 0), jnp.asarray(rng.uniform(-1, 1, (2, 2, 1)), jnp.float32),
-                            jnp.asarray(rng.uniform(0, 1, (2, 2)), jnp.float32))
+        learner = step.store_jit(
+            learner, jnp.asarray(rng.integers(0, 255, (4, 16, 16, 9), np.uint8)),
+            jnp.full((4,), t % 6 == 0), jnp.asarray(rng.uniform(-1, 1, (2, 2, 1)), jnp.float32),
+            jnp.asarray(rng.uniform(0, 1, (4,)), jnp.float32), spec=spec)
       mesh = loop._mesh(2)
       assert mesh is not None
-      keys = jax.random.split(jax.random.key(3), 2)
       copy = lambda t: jax.tree.map(lambda x: x.copy() if hasattr(x, "copy") else x, t)
-      agents2, buffers2, agents3 = copy(agents), copy(buffers), copy(agents)  # _update donates
-      plain, m1 = loop._update(agents, buffers, keys, 2, cfg)
-      mapped, _ = loop._update(agents3, buffers, keys, 2, cfg, agent_loop="map")
-      for a, b in zip(jax.tree.leaves(plain.params), jax.tree.leaves(mapped.params)):
+      mapped_spec = dataclasses.replace(spec, agent_loop="map")
+      plain = step.learn_jit(copy(learner), pairs=2, spec=spec)   # learn donates
+      mapped = step.learn_jit(copy(learner), pairs=2, spec=mapped_spec)
+      for a, b in zip(jax.tree.leaves(plain.agents.params), jax.tree.leaves(mapped.agents.params)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=2e-3)
-      sharded, m2 = loop._update(loop._put(agents2, mesh), loop._put(buffers2, mesh),
-                                 loop._put(keys, mesh), 2, cfg, mesh=mesh)
-      leaf = jax.tree.leaves(sharded.params)[0]
+      put = lambda t: loop._put(t, mesh)
+      sharded = step.learn_jit(copy(learner).replace(agents=put(learner.agents),
+                                                     buffers=put(learner.buffers)),
+                               pairs=2, spec=spec, mesh=mesh)
+      leaf = jax.tree.leaves(sharded.agents.params)[0]
       assert len(leaf.sharding.device_set) == 2, leaf.sharding
-      for name in m1:
-        np.testing.assert_allclose(np.asarray(m1[name]), np.asarray(m2[name]), rtol=1e-4,
-                                   atol=1e-6, err_msg=name)
-      for a, b in zip(jax.tree.leaves(plain.params), jax.tree.leaves(sharded.params)):
+      for name in plain.metrics:
+        np.testing.assert_allclose(np.asarray(plain.metrics[name]),
+                                   np.asarray(sharded.metrics[name]), rtol=1e-4, atol=1e-6,
+                                   err_msg=name)
+      for a, b in zip(jax.tree.leaves(plain.agents.params), jax.tree.leaves(sharded.agents.params)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=2e-3)
-      obs = loop._put(jnp.asarray(rng.integers(0, 255, (2, 2, 16, 16, 9), np.uint8)), mesh)
+      obs = jnp.asarray(rng.integers(0, 255, (4, 16, 16, 9), np.uint8))
       np.testing.assert_allclose(
-          np.asarray(loop._act(plain, jax.device_put(obs, jax.devices()[0]), keys, random=False)),
-          np.asarray(loop._act(sharded, obs, loop._put(keys, mesh), random=False, mesh=mesh)),
-          atol=1e-3)
+          np.asarray(step.act_jit(plain, obs, spec=spec)[1]),
+          np.asarray(step.act_jit(sharded, put(obs), spec=spec, mesh=mesh)[1]), atol=1e-3)
       print("ok")
       """)
   env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",

@@ -12,9 +12,12 @@ Arguments are checked before anything is compiled. Outputs go to `--out`
 orbax checkpoints; `--resume` continues from the latest checkpoint (see
 `train.loop` for what is restored: agents, step and RNG key, not the buffers).
 
-`--renderer jax` renders with the JAX ray caster on the device and runs training
-in chunks of `--chunk-steps` vector steps, each one XLA call (`train.device_loop`);
-`--quality` and `--workers` belong to the default CPU render pool (`--renderer pool`).
+`--renderer jax` renders with the JAX ray caster on the device; with the physics
+on the device too (`--physics device`) training runs in chunks of `--chunk-steps`
+vector steps, each one XLA call (`train.device_loop`). `--physics auto` (the
+default) steps small batches' physics on the host CPU, beside the learner's
+updates on the accelerator (`train.loop`). `--quality` and `--workers` belong to
+the default CPU render pool (`--renderer pool`).
 
 `--algo` picks the learner (`train.sac.ALGOS`); unset options take its defaults
 (`train.sac.ALGO_DEFAULTS`: CURL renders at 100 and crops to 84 and takes no
@@ -29,7 +32,7 @@ import argparse
 import json
 import sys
 
-from train.loop import TrainConfig, check_config, train
+from train.loop import CPU_PHYSICS_MAX_ENVS, PHYSICS, TrainConfig, check_config, train
 from train.sac import ALGOS, SACConfig
 
 
@@ -66,6 +69,11 @@ def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
   p.add_argument("--renderer", default=d.renderer,
                  help="pool (MuJoCo in CPU workers, the default) or jax (the JAX ray "
                       "caster; training runs in chunks of --chunk-steps on the device)")
+  p.add_argument("--physics", default=d.physics, choices=PHYSICS,
+                 help="where the physics steps: auto (the host CPU for at most "
+                      f"{CPU_PHYSICS_MAX_ENVS} envs in all when the learner runs on "
+                      "an accelerator, else the device), cpu or device (default: "
+                      "%(default)s)")
   p.add_argument("--chunk-steps", type=int, default=d.chunk_steps,
                  help="--renderer jax: vector steps per device call (default: %(default)s)")
   p.add_argument("--quality", default=d.quality,
@@ -96,7 +104,7 @@ def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
                       buffer_capacity=a.buffer_capacity, image_size=a.image_size,
                       quality=a.quality, workers=a.workers, log_every=a.log_every,
                       checkpoint_every=a.checkpoint_every, agent_loop=a.agent_loop,
-                      renderer=a.renderer, chunk_steps=a.chunk_steps,
+                      renderer=a.renderer, chunk_steps=a.chunk_steps, physics=a.physics,
                       out_dir=a.out or default_out(a.task, sac_cfg),
                       sac=sac_cfg)
     check_config(cfg)

@@ -1,17 +1,20 @@
-"""The training loop (SAC+AUG, CURL, SAC+AE): K agents, each acting in its own N pixel envs.
+"""The training run (SAC+AUG, CURL, SAC+AE): K agents, each acting in its own N pixel envs.
 
-One `dmcr_jax.make` env of K·N envs serves all agents (agent k acts in envs
-k·N … k·N + N − 1); agents, replay buffers and their updates carry a leading
-agent axis K and run as one vmapped, jitted call, sharded over the local devices
-along that axis when K divides evenly. Per agent step (one `env.step`, the host
-boundary): act (jitted), step the envs, add the transition to every agent's
-buffer (jitted, buffers donated). Once the warm-up is over, the updates owed so
-far run as one `lax.scan` over `sac.update_pair` (so "actor and targets every 2
-updates" holds), dispatched inside `env.step` between its physics and its
-rendering (`while_rendering`), so the accelerator runs them while the CPU
-renders; they sample the buffers before the step's new transitions are added,
-the order of the DrQ, CURL and SAC-AE training loops (update, then env step).
-`utd` gradient updates are owed per agent step of each env.
+`train` builds one `dmcr_jax.make` env of K·N envs for all agents (agent k acts
+in envs k·N … k·N + N − 1) and drives `train.step`'s training step around it
+(the host driver): per vector step, `act` (jitted), the env's `step_async`
+(physics dispatched), `learn` (the updates owed, dispatched: the accelerator
+runs them while the env steps), the env's `step_wait` (rendering), `store`
+(jitted, buffers donated). With the JAX renderer and the physics on the same
+device, `train.device_loop` (the device driver) scans chunks of the same step as
+single XLA calls instead. Both drivers share this module's config, log,
+checkpoints, resume and summary.
+
+Physics device (`TrainConfig.physics`): "auto" steps the physics of small
+batches (K·N ≤ `CPU_PHYSICS_MAX_ENVS`) on the host CPU when the learner runs on
+an accelerator: a few dozen envs step there faster than an accelerator's launch
+latency allows, and off the accelerator's queue, so the updates and the physics
+run at the same time; larger batches step on the accelerator.
 
 Agents: one per (augmentation, seed) pair: `seeds` × `sac.aug_names` (e.g.
 ``aug="drq,cj+drq"`` with 3 seeds trains 6 agents; an agent's network init
@@ -24,21 +27,13 @@ steps of N transitions each; the first `warmup_steps` transitions come from
 uniform random actions (Table 6: 1,000), and `utd` updates are owed per
 transition.
 
-Agent batching (`agent_loop`): "vmap" runs the K agents' updates as one batched
-computation (their convolutions become grouped convolutions); "map" runs them one
-after the other inside the same jitted call (`jax.lax.map`). The default (None)
-picks "map" on accelerators, where benchmarks/learner.py measured it 2.2× faster
-than "vmap" for 8 agents on the H100 (learner_h100.md), and "vmap" on CPU.
+Agent batching (`agent_loop`): "vmap" batches the K agents' updates, "map" runs
+them one after the other in the same call; None picks "map" on accelerators and
+"vmap" on CPU (`train.step`).
 
-Update chunks: on accelerators all updates owed at a step run as one jitted
-`lax.scan`; on CPU, where XLA runs the body of a loop about 4× slower than the
-same ops outside one (measured with this update), each update pair is its own
-jitted call instead (dispatch costs little next to a CPU update).
-
-Renderer: with `TrainConfig.renderer = "jax"` (`train --renderer jax`), `train`
-hands the run to `train.device_loop`, which runs chunks of this loop (act, the owed
-updates, env step, buffer add; the same order and update count) as single XLA
-calls and reuses this module's config, log, checkpoints, resume and summary.
+Update chunks: on accelerators the update pairs owed at a step run as one
+jitted loop; on CPU, where XLA runs a loop body several times slower than the
+same ops outside one, that loop is unrolled.
 
 Checkpoints (orbax, `<out>/checkpoints`): the agents (parameters, optimizer
 states, α, update count), the step counter and the RNG key, every
@@ -66,12 +61,19 @@ import numpy as np
 from dmcr_jax.checks import positive_int
 from dmcr_jax.visuals.levels import SeedRange
 from train import replay, sac
+from train import step as train_step
+from train.step import to_env_action  # noqa: F401  (evaluation and analysis use it)
 
 
 AGENT_LOOPS = ("vmap", "map")
 """What `TrainConfig.agent_loop` accepts."""
 RENDERERS = ("pool", "jax")
 """What `TrainConfig.renderer` accepts (`dmcr_jax.make`'s renderers)."""
+PHYSICS = ("auto", "cpu", "device")
+"""What `TrainConfig.physics` accepts: "auto" (module doc), the host CPU, or the
+learner's device."""
+CPU_PHYSICS_MAX_ENVS = 64
+"""The largest K·N whose physics "auto" steps on the host CPU."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,8 +106,10 @@ class TrainConfig:
     renderer: "pool" (the CPU render pool; this module's host loop) or "jax" (the
       JAX ray caster; `train.device_loop` runs chunks of training as single XLA
       calls).
-    chunk_steps: with renderer "jax", vector steps (of all envs) per XLA call;
-      logs, checkpoints and the stop flag are handled between chunks.
+    chunk_steps: with the device driver (renderer "jax", physics on the device),
+      vector steps (of all envs) per XLA call; logs, checkpoints and the stop
+      flag are handled between chunks.
+    physics: where the physics steps: "auto", "cpu" or "device" (module doc).
     out_dir: where the CSV, the PNG and the checkpoints go.
     sac: the learner's hyperparameters.
   """
@@ -129,12 +133,21 @@ class TrainConfig:
   agent_loop: str | None = None
   renderer: str = "pool"
   chunk_steps: int = 50
+  physics: str = "auto"
   sac: sac.SACConfig = sac.SACConfig()
 
   def __post_init__(self):
     if self.image_size is None:
       size = self.sac.curl_crop + 16 if self.sac.algo == "curl" else 84
       object.__setattr__(self, "image_size", size)
+
+  def physics_device(self) -> str | None:
+    """`dmcr_jax.make`'s `physics_device` for this run (None: JAX's default)."""
+    if self.physics == "cpu" or (
+        self.physics == "auto" and jax.default_backend() != "cpu"
+        and len(self.agents()) * self.num_envs <= CPU_PHYSICS_MAX_ENVS):
+      return "cpu"
+    return None
 
   def agents(self) -> list[tuple[int, str]]:
     """(seed, augmentation) of each agent, in the order of the agent axis."""
@@ -192,6 +205,8 @@ def check_config(cfg: TrainConfig) -> None:
     if isinstance(seeds, SeedRange):
       from dmcr_jax.jax_env import check_range
       check_range(seeds)
+  if cfg.physics not in PHYSICS:
+    raise ValueError(f"physics must be one of {', '.join(PHYSICS)}, got {cfg.physics!r}")
   if cfg.agent_loop is not None and cfg.agent_loop not in AGENT_LOOPS:
     raise ValueError(f"agent_loop must be one of {', '.join(AGENT_LOOPS)}, got "
                      f"{cfg.agent_loop!r}")
@@ -203,81 +218,7 @@ def check_config(cfg: TrainConfig) -> None:
                      f"{cfg.sac.curl_crop + 16}), got {cfg.image_size}")
 
 
-# Jitted pieces (vmapped over the agent axis K) ------------------------------------
-#
-# With several devices the agent axis is split with `shard_map` (each device runs
-# the vmapped function on its own agents), not left to XLA's automatic
-# partitioning: on CPU that partitioned the vmapped convolutions wrongly (encoder
-# outputs off by up to 1.8; tests/test_train.py checks the sharded run against
-# the unsharded one).
-
-
-def _agent_parallel(fn, mesh):
-  """`fn` (every argument and output with the leading agent axis) per device."""
-  if mesh is None:
-    return fn
-  spec = jax.sharding.PartitionSpec("agents")
-  return jax.shard_map(fn, mesh=mesh, in_specs=spec, out_specs=spec)
-
-
-def actions(agents: sac.AgentState, obs: jax.Array, keys: jax.Array, random: bool):
-  """Actions in [−1, 1] for obs (K, N, H, W, C) of K agents: the policies' samples,
-  or uniform (`random`, the warm-up); keys (K,). Pure (both loops use it)."""
-  size = agents.networks.actor.action_size
-  if random:
-    return jax.vmap(lambda o, k: jax.random.uniform(k, (o.shape[0], size), minval=-1,
-                                                    maxval=1))(obs, keys)
-  return jax.vmap(lambda a, o, k: sac.act(a, o, k))(agents, obs, keys)
-
-
-@functools.partial(jax.jit, static_argnames=("random", "mesh"))
-def _act(agents: sac.AgentState, obs: jax.Array, keys: jax.Array, random: bool, mesh=None):
-  """`actions`, jitted, per device along the agent axis."""
-  fn = lambda agents, obs, keys: actions(agents, obs, keys, random)
-  return _agent_parallel(fn, mesh)(agents, obs, keys)
-
-
-@functools.partial(jax.jit, static_argnames=("mesh",), donate_argnums=(0,))
-def _add(buffers, frame, first, action, reward, mesh=None):
-  return _agent_parallel(jax.vmap(replay.add), mesh)(buffers, frame, first, action, reward)
-
-
-@functools.partial(jax.jit, static_argnames=("pairs", "config", "mesh", "agent_loop",
-                                             "unroll"), donate_argnums=(0,))
-def _update(agents, buffers, keys, pairs: int, config: sac.SACConfig, mesh=None,
-            agent_loop: str = "vmap", unroll: bool = False):
-  """`pairs` × `update_pair` for every agent, one scan each; the mean metrics (K,).
-
-  `agent_loop` "vmap" batches the agents, "map" runs them one after the other;
-  `unroll` unrolls the scan over pairs (for CPU, module doc).
-  """
-  def one_agent(agent, buffer, key):
-    body = lambda agent, k: update_pair(agent, buffer, k, config)
-    agent, metrics = jax.lax.scan(body, agent, jax.random.split(key, pairs), unroll=unroll)
-    return agent, jax.tree.map(jnp.mean, metrics)
-  return _agent_parallel(over_agents(one_agent, agent_loop, agents), mesh)(
-      agents, buffers, keys)
-
-
-def update_pair(agent: sac.AgentState, buffer: replay.ReplayBuffer, key: jax.Array,
-                config: sac.SACConfig):
-  """One agent's `sac.update_pair` on two batches sampled from its buffer (pure).
-
-  Returns:
-    (agent, metrics of the pair).
-  """
-  k_sample, k_update = jax.random.split(key)
-  batches = jax.vmap(lambda kk: replay.sample(buffer, kk, config.batch_size))(
-      jax.random.split(k_sample, 2))
-  return sac.update_pair(agent, batches, k_update, config)
-
-
-def over_agents(one_agent, agent_loop: str, agents: sac.AgentState):
-  """`one_agent(agent, buffer, key)` batched over the agent axis: "vmap" batches
-  the agents, "map" runs them one after the other (module doc)."""
-  if agent_loop == "map" and agents.step.shape[0] > 1:
-    return lambda *args: jax.lax.map(lambda a: one_agent(*a), args)
-  return jax.vmap(one_agent)
+# Devices ----------------------------------------------------------------------------
 
 
 def _mesh(k: int):
@@ -323,13 +264,6 @@ def _restore(manager, agents, key):
           "step": np.asarray(0, np.int64)}
   state = manager.restore(step, args=ocp.args.StandardRestore(like))
   return state["agents"], jax.random.wrap_key_data(state["key"]), int(state["step"])
-
-
-def to_env_action(action, low: np.ndarray, high: np.ndarray):
-  """Policy actions in [−1, 1] → the env's bounds [low, high] (float32; a NumPy
-  array, or a `jax.Array` for a `jax.Array` (traced) input)."""
-  xp = jnp if isinstance(action, jax.Array) else np
-  return (low + (xp.asarray(action) + 1.0) * 0.5 * (high - low)).astype(xp.float32)
 
 
 def save_config(cfg: TrainConfig, out_dir: str) -> None:
@@ -523,89 +457,110 @@ def crossed(every: int, before: int, step: int) -> bool:
   return bool(every) and step // every != before // every
 
 
+def step_spec(cfg: TrainConfig, env) -> train_step.StepSpec:
+  """The `train.step.StepSpec` of a run on `env` (its action bounds)."""
+  on_cpu = jax.default_backend() == "cpu"
+  return train_step.StepSpec(
+      agents=len(cfg.agents()), num_envs=cfg.num_envs, warmup_steps=int(cfg.warmup_steps),
+      utd=float(cfg.utd), sac=cfg.sac,
+      agent_loop=cfg.agent_loop or ("vmap" if on_cpu else "map"),
+      low=tuple(float(x) for x in env.single_action_space.low),
+      high=tuple(float(x) for x in env.single_action_space.high))
+
+
+def make_env(cfg: TrainConfig, **options):
+  """The run's `dmcr_jax.make` env of K·N envs (`options` go to `make`)."""
+  import dmcr_jax
+  k = len(cfg.agents())
+  if cfg.renderer == "pool":
+    options = dict(quality=cfg.quality, workers=cfg.workers, **options)
+  return dmcr_jax.make(cfg.task, num_envs=k * cfg.num_envs,
+                       visual_seeds=parse_visual_seeds(cfg.visual_seeds), vary=cfg.vary,
+                       frame_skip=cfg.action_repeat, frame_stack=cfg.frame_stack,
+                       image_size=cfg.image_size, seed=int(cfg.seeds[0]),
+                       renderer=cfg.renderer, **options)
+
+
 def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict:
-  """Trains `len(cfg.seeds)` agents; returns a summary (also written as JSON).
+  """Trains `len(cfg.agents())` agents; returns a summary (also written as JSON).
 
   Writes `<out_dir>/config.json`, `<out_dir>/log.csv` (one row per finished
   episode: step, agent, seed, augmentation, return, wall time, transitions/s and
   the latest update metrics), `<out_dir>/learning_curve.png`,
-  `<out_dir>/summary.json` and the checkpoints. With `cfg.renderer == "jax"`
-  the run is `train.device_loop.train` (same outputs).
+  `<out_dir>/summary.json` and the checkpoints. With the JAX renderer and the
+  physics on the learner's device the run is `train.device_loop.train` (same
+  outputs).
 
   Raises:
     ValueError: a bad config (before anything is built).
     FileExistsError: `out_dir` already holds checkpoints and `resume` is False.
     FileNotFoundError: `resume` and no checkpoint.
   """
-  import dmcr_jax
   check_config(cfg)
-  if cfg.renderer == "jax":
+  physics_device = cfg.physics_device()
+  if cfg.renderer == "jax" and physics_device is None:
     from train import device_loop
     return device_loop.train(cfg, resume=resume, progress=progress)
   manager = open_run(cfg, resume)
-  specs = cfg.agents()
-  k, n = len(specs), cfg.num_envs
-  env = dmcr_jax.make(cfg.task, num_envs=k * n, visual_seeds=parse_visual_seeds(cfg.visual_seeds),
-                      vary=cfg.vary, frame_skip=cfg.action_repeat, frame_stack=cfg.frame_stack,
-                      image_size=cfg.image_size, seed=int(cfg.seeds[0]), quality=cfg.quality,
-                      workers=cfg.workers)
+  k, n = len(cfg.agents()), cfg.num_envs
+  extra = dict(obs_on_device=True) if cfg.renderer == "jax" else {}
+  env = make_env(cfg, physics_device=physics_device, **extra)
   with env:
     obs_shape = env.single_observation_space.shape
-    action_size = env.task.action_size
-    low, high = env.single_action_space.low, env.single_action_space.high
     mesh = _mesh(k)
     on_cpu = jax.default_backend() == "cpu"
-    agent_loop = cfg.agent_loop or ("vmap" if on_cpu else "map")
-    agents, buffers, key, start = initial_state(cfg, manager, resume, obs_shape, action_size)
-    agents, buffers = _put(agents, mesh), _put(buffers, mesh)
+    spec = step_spec(cfg, env)
+    agents, buffers, key, start = initial_state(cfg, manager, resume, obs_shape,
+                                                env.task.action_size)
+    learner = train_step.init_learner(_put(agents, mesh), _put(buffers, mesh), key, start,
+                                      spec)
+    put = lambda x: _put(jnp.asarray(x), mesh)
+    physics_first = physics_device is None or on_cpu
+
+    def learn(learner, owed, ready, step):
+      """`train.step.learn` with the pairs owed at `step` (host counters)."""
+      owed, pairs = train_step.owed_updates(owed, step, spec)
+      learning = step + n > cfg.warmup_steps
+      ready = ready or (learning and bool(train_step.can_sample_jit(learner.buffers)))
+      run = learning and ready and pairs > 0
+      learner = train_step.learn_jit(learner, pairs=int(pairs) if run else 0, spec=spec,
+                                     mesh=mesh, unroll=on_cpu)
+      return learner, (owed - 2 * pairs if run else owed), ready
+
     log = RunLog(cfg, start, resume, progress)
-    owed, metrics, ready = 0.0, {}, False
+    owed, ready = np.float32(0), False
     try:
       obs, info = env.reset(seed=int(cfg.seeds[0]) + start)
       first = info["episode_step"] == 0
       step = start
       while step < cfg.steps and not log.stopped:
-        key, k_act, k_upd = jax.random.split(key, 3)
-        obs_k = _put(jnp.asarray(obs.reshape((k, n) + obs.shape[1:])), mesh)
-        action = _act(agents, obs_k, _put(jax.random.split(k_act, k), mesh),
-                      random=step < cfg.warmup_steps, mesh=mesh)
+        obs = put(obs)
+        learner, action, env_action = train_step.act_jit(learner, obs, spec=spec, mesh=mesh)
+        env_action = np.asarray(env_action)
+        # The updates owed run while the env steps: dispatched before the physics
+        # when it steps elsewhere (the host CPU), after it when it shares their
+        # device (it then leaves the queue first, and the CPU renders while the
+        # updates run).
+        if not physics_first:
+          learner, owed, ready = learn(learner, owed, ready, step)
+        env.step_async(env_action)
+        if physics_first:
+          learner, owed, ready = learn(learner, owed, ready, step)
+        next_obs, reward, _, truncated, info = env.step_wait()
+        learner = train_step.store_jit(learner, obs, put(first), action, put(reward),
+                                       spec=spec, mesh=mesh)
         before, step = step, step + n
-        env_action = to_env_action(np.asarray(action).reshape(k * n, action_size), low, high)
-
-        def dispatch_updates():
-          """The updates owed for this step's N transitions, dispatched while the env
-          renders; they sample the buffer as it was before this step's transitions
-          (the order of the DrQ, CURL and SAC-AE loops: update, then env step)."""
-          nonlocal agents, metrics, owed, ready
-          if step <= cfg.warmup_steps:
-            return
-          owed += cfg.utd * (step - max(before, cfg.warmup_steps))
-          pairs = int(owed // 2)
-          # Every buffer must hold a valid transition (checked until it does).
-          ready = ready or int(jnp.min(jax.vmap(replay.num_valid)(buffers))) > 0
-          if pairs and ready:
-            chunks = [1] * pairs if on_cpu else [pairs]
-            for i, chunk in enumerate(chunks):
-              keys = _put(jax.random.split(jax.random.fold_in(k_upd, i), k), mesh)
-              agents, metrics = _update(agents, buffers, keys, chunk, cfg.sac, mesh=mesh,
-                                        agent_loop=agent_loop, unroll=on_cpu)
-            owed -= 2 * pairs
-
-        next_obs, reward, _, truncated, info = env.step(env_action,
-                                                        while_rendering=dispatch_updates)
-        buffers = _add(buffers, obs_k[..., -3:], _put(jnp.asarray(first.reshape(k, n)), mesh),
-                       action, _put(jnp.asarray(reward.reshape(k, n)), mesh), mesh=mesh)
         obs, first = next_obs, info["episode_step"] == 0
         wall = log.wall()
-        host_metrics = {f: np.asarray(v) for f, v in metrics.items()} if truncated.any() else {}
+        metrics = jax.device_get(learner.metrics) if truncated.any() else {}
         for i in np.flatnonzero(truncated):
-          log.episode(step, int(i // n), float(info["episode_return"][i]), wall, host_metrics)
+          log.episode(step, int(i // n), float(info["episode_return"][i]), wall, metrics)
         if crossed(cfg.log_every, before, step) or step >= cfg.steps:
           log.progress(step)
         if crossed(cfg.checkpoint_every, before, step):
-          _save(manager, step, agents, key)
+          _save(manager, step, learner.agents, learner.key)
       if manager.latest_step() != step:
-        _save(manager, step, agents, key)
+        _save(manager, step, learner.agents, learner.key)
     finally:
       log.close()
   return finish(cfg, step, log)
