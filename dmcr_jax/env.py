@@ -575,7 +575,8 @@ def make(task: str, num_envs: int = 1, visual_seeds: Any = 0,
       dm_control's pixels) or "jax" (the JAX ray caster on the device, physics,
       frames and stacks in one jitted call; close to MuJoCo's pixels, not equal).
     **kwargs: for "pool": `workers`, `quality` ("exact", "fast", "fastest"), `gl`
-      ("egl", "osmesa") for the `RenderPool`, `copy_obs` (default True; False
+      ("egl", the default, or "osmesa", which needs the OSMesa library; no
+      environment variable needed) for the `RenderPool`, `copy_obs` (default True; False
       returns views of shared memory, see the module docstring). For "jax"
       (which has no workers and no quality presets): `shadows`, `reflection`
       (default True: MuJoCo's picture), `render_chunk` (envs per render chunk,
