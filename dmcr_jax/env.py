@@ -42,8 +42,10 @@ Visual seeds (`visual_seeds=`):
 
 Observations are uint8 (N, H, W, 3·frame_stack), channels-last, oldest frame
 first. `info` holds, per env: "state" (dm_control's state features, flat),
-"visual_seed", "episode" (episodes begun − 1), "episode_step" (agent steps in the
-episode) and "episode_return".
+"visual_seed", "episode_index" (episodes begun − 1), "episode_step" (agent steps
+in the episode) and "episode_return", each with gymnasium's boolean mask
+"_<key>" (every env has every key: all True). "episode" is left to gymnasium's
+`RecordEpisodeStatistics` wrappers, which reserve it.
 """
 
 from __future__ import annotations
@@ -74,6 +76,26 @@ ACTION_REPEAT = {"walker-walk": 2, "cheetah-run": 4, "hopper-stand": 4, "finger-
 _DOMAIN_REPEAT = {"walker": 2, "cheetah": 4, "hopper": 4, "finger": 2, "ball_in_cup": 4,
                   "cartpole": 8}
 TIMING_PARTS = ("physics", "transfer", "render", "copy")
+INFO_KEYS = ("state", "visual_seed", "episode_index", "episode_step", "episode_return")
+"""The per-env entries of `info` (each also with gymnasium's "_<key>" mask)."""
+MAX_RESET_SEED = 2**32
+"""`reset(seed=…)` and `make(seed=…)` take ints in [0, MAX_RESET_SEED): a JAX key
+holds 32 bits of an int seed, so larger ones would repeat smaller ones' episodes."""
+
+
+def check_reset_seed(seed, num_envs: int) -> np.ndarray | int:
+  """A reset seed as an int, or gymnasium's per-env form (a sequence of `num_envs`
+  ints) as a uint32 array; ValueError naming the rule otherwise."""
+  values = [seed] if np.ndim(seed) == 0 else list(seed)
+  if np.ndim(seed) == 1 and len(values) != num_envs:
+    raise ValueError(f"seed must be an int or {num_envs} ints (one per env), got "
+                     f"{len(values)} ints")
+  for v in values:
+    if (isinstance(v, bool) or not isinstance(v, (int, np.integer))
+        or not 0 <= int(v) < MAX_RESET_SEED):
+      raise ValueError(f"seed must be an int in [0, 2**32) or a list of {num_envs} such "
+                       f"ints (one per env), got {seed!r}")
+  return int(seed) if np.ndim(seed) == 0 else np.asarray(values, np.uint32)
 
 
 def default_frame_skip(task: str) -> int:
@@ -143,8 +165,9 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     self.frame_stack = positive_int("frame_stack", frame_stack)
     h, w = (image_size, image_size) if np.ndim(image_size) == 0 else tuple(image_size)
     self.height, self.width = positive_int("image height", h), positive_int("image width", w)
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+    if np.ndim(seed) != 0:
       raise ValueError(f"seed must be an int, got {seed!r}")
+    check_reset_seed(seed, num_envs)
     active_factors(domain, vary)  # validates `vary`, listing the factors
     self.task_name, self.domain, self.vary, self.camera = task, domain, vary, camera
     self.seeds = self._check_seeds(_seed_source(visual_seeds, n))
@@ -226,7 +249,9 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     """Starts a new episode in every env.
 
     Args:
-      seed: re-seeds the dynamics keys (and few-shot seed draws); None continues
+      seed: an int in [0, 2**32) re-seeds the dynamics keys (and few-shot seed
+        draws); a list of N such ints (gymnasium's per-env form) gives env i the
+        key of seed[i], so its episodes depend on seed[i] alone; None continues
         the env's key stream (a different episode each call).
       options: not used (must be None or empty).
 
@@ -236,9 +261,12 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     if options:
       raise ValueError(f"{type(self).__name__}.reset takes no options, got {sorted(options)}")
     if seed is not None:
-      if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
-        raise ValueError(f"seed must be an int or None, got {seed!r}")
-      self._key = jax.random.key(int(seed))
+      seed = check_reset_seed(seed, self.num_envs)
+      if np.ndim(seed) == 1:
+        keys = jax.vmap(jax.random.key)(jnp.asarray(seed))
+        self._key = jax.random.fold_in(keys[0], self.num_envs)
+        return self._reset(keys)
+      self._key = jax.random.key(seed)
     self._key, key = jax.random.split(self._key)
     return self._reset(key)
 
@@ -287,15 +315,18 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
 
   def _host_fields(self, es: physics_env.EnvState, reward, truncated) -> dict:
     """What the host reads of a step besides pixels (fetched with them)."""
-    out = {"state": es.task.obs, "visual_seed": es.visual_seed, "episode": es.episode,
-           "episode_step": es.episode_step, "episode_return": es.episode_return}
+    out = {"state": es.task.obs, "visual_seed": es.visual_seed,
+           "episode_index": es.episode, "episode_step": es.episode_step,
+           "episode_return": es.episode_return}
     if reward is not None:
       out["reward"], out["truncated"] = reward, truncated
     return out
 
   def _info(self, host: dict) -> dict:
-    return {k: host[k] for k in ("state", "visual_seed", "episode", "episode_step",
-                                 "episode_return")}
+    info = {k: host[k] for k in INFO_KEYS}
+    every = np.ones(self.num_envs, bool)
+    info.update({f"_{k}": every for k in INFO_KEYS})
+    return info
 
 
 class PixelVectorEnv(_PixelEnvBase):
@@ -570,7 +601,8 @@ def make(task: str, num_envs: int = 1, visual_seeds: Any = 0,
     frame_stack: frames per observation, stacked on the channel axis.
     image_size: H = W, or (H, W).
     camera: camera id or name (camera 0 is the one the visual seeds move).
-    seed: dynamics seed (initial states; and few-shot seed draws).
+    seed: dynamics seed, an int in [0, 2**32) (initial states; and few-shot seed
+      draws).
     renderer: "pool" (default: MuJoCo's renderer in CPU worker processes,
       dm_control's pixels) or "jax" (the JAX ray caster on the device, physics,
       frames and stacks in one jitted call; close to MuJoCo's pixels, not equal).
