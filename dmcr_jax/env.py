@@ -64,7 +64,7 @@ from gymnasium.vector.utils import batch_space
 from dmcr_jax import jax_env, models, physics_env
 from dmcr_jax.checks import positive_int
 from dmcr_jax.visuals import render_model as rmod
-from dmcr_jax.visuals.factors import active_factors
+from dmcr_jax.visuals.factors import check_vary
 from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, SeedRange
 from dmcr_jax.visuals.params import check_seeds
 from dmcr_jax.visuals.render_pool import RenderPool, default_workers
@@ -102,6 +102,20 @@ def default_frame_skip(task: str) -> int:
   """The action repeat a task uses by default (see `ACTION_REPEAT`)."""
   domain, _ = models.split_name(task)
   return ACTION_REPEAT.get(task, _DOMAIN_REPEAT.get(domain, 4))
+
+
+def check_camera(model, camera, task: str) -> None:
+  """ValueError unless `camera` is a camera id or name of `model` (listing them)."""
+  import mujoco
+  names = [model.camera(i).name or str(i) for i in range(model.ncam)]
+  if isinstance(camera, str):
+    ok = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera) >= 0
+  else:
+    ok = (not isinstance(camera, bool) and isinstance(camera, (int, np.integer))
+          and 0 <= camera < model.ncam)
+  if not ok:
+    raise ValueError(f"camera must be an id in [0, {model.ncam}) or a name of {task}'s "
+                     f"cameras ({', '.join(names)}), got {camera!r}")
 
 
 def _seed_source(visual_seeds, num_envs: int) -> SeedRange | np.ndarray:
@@ -168,10 +182,11 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     if np.ndim(seed) != 0:
       raise ValueError(f"seed must be an int, got {seed!r}")
     check_reset_seed(seed, num_envs)
-    active_factors(domain, vary)  # validates `vary`, listing the factors
+    check_vary(domain, vary)  # validates `vary`, listing the factors
     self.task_name, self.domain, self.vary, self.camera = task, domain, vary, camera
     self.seeds = self._check_seeds(_seed_source(visual_seeds, n))
     self.task = models.load(task, solver_iterations, ls_iterations)
+    check_camera(self.task.mj_model, camera, task)
     self.num_envs = n
     self.single_action_space = gymnasium.spaces.Box(
         self.task.action_low, self.task.action_high, (self.task.action_size,), np.float32)
@@ -213,7 +228,7 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
       ValueError: bad seeds or factors (the env is left unchanged).
     """
     vary = self.vary if vary is None else vary
-    active_factors(self.domain, vary)
+    check_vary(self.domain, vary)
     seeds = self._check_seeds(_seed_source(visual_seeds, self.num_envs))
     self.seeds, self.vary = seeds, vary
     self._use_seeds()
@@ -346,6 +361,8 @@ class PixelVectorEnv(_PixelEnvBase):
                quality: str = "exact", gl: str | None = None, copy_obs: bool = True,
                solver_iterations: int | None = None, ls_iterations: int | None = None):
     self._pool = None
+    if workers is not None:
+      positive_int("workers", workers)
     super().__init__(task, num_envs, visual_seeds, vary, frame_skip, frame_stack,
                      image_size, camera, seed, solver_iterations, ls_iterations)
     n = self.num_envs
@@ -595,7 +612,8 @@ def make(task: str, num_envs: int = 1, visual_seeds: Any = 0,
     visual_seeds: an int (every env), N ints (one per env), or a `SeedRange`
       drawn from at every reset (few-shot: `levels(1000)`; test: `TEST_SEEDS`;
       with renderer="jax" at most `jax_env.MAX_RANGE_LOOKS` seeds).
-    vary: factors the visual seeds change ("all", "none", "floor,background", …).
+    vary: factors the visual seeds change ("all", "none", "floor,background", …;
+      named factors must apply to the task's domain, `visuals.factors.APPLICABLE`).
     frame_skip: control steps per agent step, rewards summed (default: the
       paper's action repeat, `default_frame_skip(task)`).
     frame_stack: frames per observation, stacked on the channel axis.
@@ -625,9 +643,11 @@ def make(task: str, num_envs: int = 1, visual_seeds: Any = 0,
     `reset()` first.
 
   Raises:
-    ValueError: unknown task, factor, renderer, quality or GL backend (the message
-      lists the valid ones), num_envs ≤ 0, a visual-seed count other than 1 or N,
-      an option of the other renderer, a SeedRange too large for renderer="jax".
+    ValueError: unknown task, factor, camera, renderer, quality or GL backend (the
+      message lists the valid ones), a factor that does not apply to the task's
+      domain or an empty `vary`, num_envs or workers ≤ 0, a seed outside
+      [0, 2**32), a visual-seed count other than 1 or N, an option of the other
+      renderer, a SeedRange too large for renderer="jax".
   """
   if renderer not in RENDERERS:
     raise ValueError(f"Unknown renderer {renderer!r}; valid: {', '.join(RENDERERS)}.")

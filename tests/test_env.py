@@ -187,6 +187,14 @@ def test_bad_input_is_rejected_and_the_env_keeps_working(env):
     (dict(image_size=(32, 0)), "image width must be a positive int"),
     (dict(quality="ultra"), "valid: exact, fast, fastest"),
     (dict(gl="vulkan"), "valid: egl, osmesa"),
+    # Checked before any worker starts (camera 99 failed inside a render worker;
+    # the others were accepted silently).
+    (dict(camera=99), r"camera must be an id in \[0, 2\) or a name .*fixed, lookat"),
+    (dict(camera="top"), "camera must be an id"),
+    (dict(vary=""), "vary is empty"),
+    (dict(vary="target,floor"), "target do\\(es\\) not apply to pendulum"),
+    (dict(workers=0), "workers must be a positive int"),
+    (dict(seed=2**70), r"seed must be an int in \[0, 2\*\*32\)"),
 ])
 def test_make_rejects_bad_arguments(kwargs, match):
   with pytest.raises((ValueError, TypeError), match=match):
