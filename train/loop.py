@@ -72,6 +72,10 @@ AGENT_LOOPS = ("vmap", "map")
 """What `TrainConfig.agent_loop` accepts."""
 RENDERERS = ("pool", "jax")
 """What `TrainConfig.renderer` accepts (`dmcr_jax.make`'s renderers)."""
+RESUMABLE = ("steps", "checkpoint_every", "log_every", "workers")
+"""`TrainConfig` fields a resumed run may change (a larger `steps` extends it; the
+others change neither the agents nor the data); `out_dir` may name the folder
+differently. Every other field must equal the run's config.json."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -142,14 +146,23 @@ class TrainConfig:
 
 
 def parse_visual_seeds(value) -> Any:
-  """`TrainConfig.visual_seeds` → what `dmcr_jax.make` takes."""
+  """`TrainConfig.visual_seeds` → what `dmcr_jax.make` takes (checked: a seed in
+  [0, 2**31 − 1], or levels:<n> with n ≥ 1)."""
   from dmcr_jax.visuals.levels import levels
-  if isinstance(value, str) and value.startswith("levels:"):
-    return levels(int(value.split(":", 1)[1]))
+  from dmcr_jax.visuals.params import check_seeds
+  want = "an int in [0, 2**31 − 1] (a fixed look) or 'levels:<n>' with n ≥ 1 (few-shot)"
   try:
-    return int(value)
+    if isinstance(value, str) and value.startswith("levels:"):
+      n = int(value.split(":", 1)[1])
+      positive_int("levels", n)
+      return levels(n)
+    if isinstance(value, bool) or isinstance(value, float):
+      raise ValueError
+    seed = int(value)
+    check_seeds(seed)
+    return seed
   except (TypeError, ValueError):
-    raise ValueError(f"visual_seeds must be an int or 'levels:<n>', got {value!r}") from None
+    raise ValueError(f"visual_seeds must be {want}, got {value!r}") from None
 
 
 def check_renderer(renderer: str, quality: str, workers: int | None) -> None:
@@ -165,17 +178,21 @@ def check_renderer(renderer: str, quality: str, workers: int | None) -> None:
 def check_config(cfg: TrainConfig) -> None:
   """Raises ValueError naming the problem (before anything is compiled)."""
   from dmcr_jax import models
-  from dmcr_jax.visuals.factors import active_factors
+  from dmcr_jax.visuals.factors import check_vary
   from dmcr_jax.visuals.tiled import check_quality
   domain, _ = models.split_name(cfg.task)
-  active_factors(domain, cfg.vary)
+  check_vary(domain, cfg.vary)
   check_quality(cfg.quality)
   parse_visual_seeds(cfg.visual_seeds)
   for name in ("steps", "num_envs", "buffer_capacity", "image_size", "frame_stack",
                "log_every"):
     positive_int(name, getattr(cfg, name))
-  if not cfg.seeds or len(set(cfg.seeds)) != len(cfg.seeds):
-    raise ValueError(f"seeds must be distinct ints, got {cfg.seeds!r}")
+  if (not cfg.seeds or len(set(cfg.seeds)) != len(cfg.seeds)
+      or any(isinstance(s, bool) or not isinstance(s, (int, np.integer))
+             or not 0 <= s < 2**31 for s in cfg.seeds)):
+    raise ValueError(f"seeds must be distinct ints in [0, 2**31), got {cfg.seeds!r}")
+  if cfg.workers is not None:
+    positive_int("workers", cfg.workers)
   if cfg.warmup_steps < 0 or cfg.checkpoint_every < 0:
     raise ValueError("warmup_steps and checkpoint_every must be >= 0")
   if not cfg.utd > 0:
@@ -201,6 +218,19 @@ def check_config(cfg: TrainConfig) -> None:
     raise ValueError(f"CURL crops {cfg.sac.curl_crop}-pixel windows: image_size must be "
                      f"> curl_crop ({cfg.sac.curl_crop}; CURL renders "
                      f"{cfg.sac.curl_crop + 16}), got {cfg.image_size}")
+
+
+def check_resume(saved: TrainConfig, cfg: TrainConfig) -> None:
+  """ValueError naming the fields in which `cfg` differs from the run's `saved`
+  config, other than those in `RESUMABLE` (and `out_dir`)."""
+  old, new = dataclasses.asdict(saved), dataclasses.asdict(cfg)
+  differ = [k for k in old if k not in RESUMABLE + ("out_dir",) and old[k] != new[k]]
+  if differ:
+    raise ValueError(
+        f"resume: the config differs from the run's config.json in {cfg.out_dir} in "
+        + ", ".join(f"{k} ({new[k]!r}, the run has {old[k]!r})" for k in differ)
+        + f"; a resumed run keeps its settings (only {', '.join(RESUMABLE)} may change): "
+        "use `train.loop.load_config(out_dir)`, or start a new run in another out_dir")
 
 
 # Jitted pieces (vmapped over the agent axis K) ------------------------------------
@@ -401,17 +431,33 @@ def load_run(out_dir: str, step: int | None = None):
 def open_run(cfg: TrainConfig, resume: bool):
   """Checks `cfg`, creates `out_dir` and writes config.json; the checkpoint manager.
 
+  With `resume`, `cfg` must match the run's config.json but for `RESUMABLE`
+  fields (`check_resume`; changed ones are written back). Nothing is created or
+  written before every check has passed.
+
   Raises:
-    ValueError: a bad config.
+    ValueError: a bad config, or a resumed one that differs from the run's.
     FileExistsError: `out_dir` already holds checkpoints and `resume` is False.
+    FileNotFoundError: `resume` and no run (config.json and a checkpoint) in `out_dir`.
   """
   check_config(cfg)
-  os.makedirs(cfg.out_dir, exist_ok=True)
-  manager = _checkpointer(cfg.out_dir)
-  if not resume and manager.latest_step() is not None:
-    raise FileExistsError(f"{cfg.out_dir}/checkpoints already holds a run (step "
-                          f"{manager.latest_step()}): pass resume=True (--resume) to "
-                          "continue it, or choose another out_dir (--out)")
+  if resume:
+    if not os.path.exists(os.path.join(cfg.out_dir, "config.json")):
+      raise FileNotFoundError(f"--resume: no run in {cfg.out_dir!r} (no config.json); "
+                              "check the folder (--out)")
+    check_resume(load_config(cfg.out_dir), cfg)
+    if (not os.path.isdir(os.path.join(cfg.out_dir, "checkpoints"))
+        or _checkpointer(cfg.out_dir).latest_step() is None):
+      raise FileNotFoundError(f"--resume: no checkpoint in {cfg.out_dir}/checkpoints")
+    manager = _checkpointer(cfg.out_dir)
+  else:
+    ckpt = os.path.join(cfg.out_dir, "checkpoints")
+    if os.path.isdir(ckpt) and _checkpointer(cfg.out_dir).latest_step() is not None:
+      raise FileExistsError(f"{ckpt} already holds a run (step "
+                            f"{_checkpointer(cfg.out_dir).latest_step()}): pass resume=True "
+                            "(--resume) to continue it, or choose another out_dir (--out)")
+    os.makedirs(cfg.out_dir, exist_ok=True)
+    manager = _checkpointer(cfg.out_dir)
   save_config(cfg, cfg.out_dir)
   return manager
 
@@ -505,6 +551,18 @@ class RunLog:
       self._bar.close()
 
 
+def json_safe(tree):
+  """`tree` (dicts, lists, numbers) with NaN and ±inf replaced by None, so that
+  `json.dump(..., allow_nan=False)` writes valid JSON (null)."""
+  if isinstance(tree, dict):
+    return {k: json_safe(v) for k, v in tree.items()}
+  if isinstance(tree, (list, tuple)):
+    return [json_safe(v) for v in tree]
+  if isinstance(tree, float) and not np.isfinite(tree):
+    return None
+  return tree
+
+
 def finish(cfg: TrainConfig, step: int, log: RunLog) -> dict:
   """The run's summary (also summary.json) and learning_curve.png."""
   specs = cfg.agents()
@@ -514,7 +572,7 @@ def finish(cfg: TrainConfig, step: int, log: RunLog) -> dict:
                  final_return=plot_learning_curve(log.path, os.path.join(
                      cfg.out_dir, "learning_curve.png"), specs))
   with open(os.path.join(cfg.out_dir, "summary.json"), "w") as f:
-    json.dump(summary, f, indent=1)
+    json.dump(json_safe(summary), f, indent=1, allow_nan=False)
   return summary
 
 
