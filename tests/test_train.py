@@ -211,3 +211,48 @@ def test_agents_sharded_over_two_devices_or_mapped_match_one_vmapped_call():
   out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                        env=env, timeout=600)
   assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-3000:]
+
+
+def test_run_log_reports_progress_every_few_percent_and_announces_compiling(tmp_path, capsys):
+  # A CPU run of 600 steps with log_every 1,000 showed 0/600 and an empty log.csv
+  # until its end, and compiled for a minute without a word.
+  cfg = loop.TrainConfig(steps=600, log_every=1000, out_dir=str(tmp_path), **{
+      k: v for k, v in CFG.items() if k != "log_every"})
+  log = loop.RunLog(cfg, 0, resume=False, progress=False)
+  try:
+    assert "compiling" in capsys.readouterr().err
+    assert log.every == 12  # 2 % of the run
+    assert log.due(10, 12) and not log.due(0, 11) and log.due(599, 600)
+    log.progress(12)
+    assert "step 12/600 (2 %)" in capsys.readouterr().err
+    log.episode(14, 0, 123.5, 1.0, {})
+    with open(os.path.join(str(tmp_path), "log.csv")) as f:  # written at once
+      assert [r["episode_return"] for r in csv.DictReader(f)] == ["123.5"]
+  finally:
+    log.close()
+
+
+def test_learning_curve_shows_a_single_point(tmp_path):
+  import matplotlib.image
+  path = str(tmp_path / "log.csv")
+  with open(path, "w") as f:
+    f.write("step,agent,seed,aug,episode_return\n300,0,0,drq,40.0\n")
+  png = str(tmp_path / "curve.png")
+  assert loop.plot_learning_curve(path, png, [(0, "drq")]) == {"seed 0": 40.0}
+  rgb = matplotlib.image.imread(png)[..., :3]
+  blue = np.abs(rgb - np.array([0x1f, 0x77, 0xb4]) / 255).max(axis=-1) < 0.1  # line colour C0
+  h, w = blue.shape
+  # The lone point sits mid-axes (the legend goes to a corner): a marker there.
+  assert blue[h // 4:3 * h // 4, w // 3:2 * w // 3].sum() > 5
+
+
+def test_train_command_reports_progress_every_2_percent(tmp_path, monkeypatch):
+  import train.__main__ as cli
+  seen = {}
+
+  def fake_train(cfg, **kwargs):
+    seen["cfg"] = cfg
+    return {"interrupted": False}
+  monkeypatch.setattr(cli, "train", fake_train)
+  cli.main(["--steps", "600", "--out", str(tmp_path / "run")])
+  assert seen["cfg"].log_every == 12  # not the default 1,000 (> the run)

@@ -32,7 +32,7 @@ import os
 import sys
 
 from train.loop import (AGENT_LOOPS, RENDERERS, RESUMABLE, TrainConfig, check_config,
-                        load_config, train)
+                        load_config, progress_every, train)
 from train.sac import ALGOS, COMPUTE_DTYPES, SACConfig
 
 
@@ -102,14 +102,15 @@ def build_parser() -> argparse.ArgumentParser:
   p.add_argument("--checkpoint-every", type=int, default=d.checkpoint_every,
                  help="steps between checkpoints (0: only at the end and on Ctrl-C)")
   p.add_argument("--log-every", type=int, default=d.log_every,
-                 help="steps between progress updates (at most 2%% of --steps, whatever "
-                      "this says)")
+                 help="steps between progress updates; `train` makes it at most 2%% of "
+                      "--steps (recorded in config.json)")
   p.add_argument("--out", default=None, help="output folder (default: runs/<task>-<aug>)")
   p.add_argument("--resume", action="store_true",
                  help="continue the run in --out from its latest checkpoint, with the "
                       "settings in its config.json (flags that differ from them are "
                       f"refused, except {', '.join('--' + f.replace('_', '-') for f in RESUMABLE)})")
-  p.add_argument("--no-progress", action="store_true", help="no progress bar")
+  p.add_argument("--no-progress", action="store_true",
+                 help="no progress bar (progress lines on stderr instead)")
   return p
 
 
@@ -204,6 +205,8 @@ def default_out(task: str, sac_cfg: SACConfig) -> str:
 
 def main(argv=None) -> None:
   cfg, a = parse(argv)
+  # Progress at least every 2 % of the run, whatever --log-every says.
+  cfg = dataclasses.replace(cfg, log_every=progress_every(cfg))
   try:
     summary = train(cfg, resume=a.resume, progress=not a.no_progress)
   except (ValueError, FileExistsError, FileNotFoundError) as e:

@@ -56,6 +56,7 @@ import functools
 import json
 import os
 import signal
+import sys
 import time
 from typing import Any
 
@@ -486,13 +487,31 @@ def initial_state(cfg: TrainConfig, manager, resume: bool, obs_shape, action_siz
   return agents, buffers, key, start
 
 
+PROGRESS_FRACTION = 0.02
+"""`RunLog.due` reports progress at least every this fraction of a run's steps,
+whatever `log_every` says (a CPU run of 600 steps with log_every 1,000 showed
+nothing until its end)."""
+
+
+def progress_every(cfg: TrainConfig) -> int:
+  """Steps between progress reports: `log_every`, at most `PROGRESS_FRACTION` of
+  the run (at least 1)."""
+  return max(1, min(cfg.log_every, int(cfg.steps * PROGRESS_FRACTION)))
+
+
 class RunLog:
   """A run's host side between steps (or chunks): the episode log (log.csv), the
-  progress bar, and the stop flag that SIGINT/SIGTERM set (the handlers are
-  restored by `close`)."""
+  progress bar (or, without one, progress lines on stderr), and the stop flag that
+  SIGINT/SIGTERM set (the handlers are restored by `close`).
+
+  A finished episode's row is flushed at once and moves the bar; `due` says when
+  the loop should call `progress` (every `every` steps). Creating a RunLog
+  announces the compilation that the loop's first steps trigger."""
 
   def __init__(self, cfg: TrainConfig, start: int, resume: bool, progress: bool):
     self.cfg, self.specs, self.start = cfg, cfg.agents(), start
+    self.every = progress_every(cfg)
+    self._last_line = None
     self.stop = {"signal": None}
     self._previous = {s: signal.signal(s, lambda sig, _: self.stop.update(signal=sig))
                       for s in (signal.SIGINT, signal.SIGTERM)}
@@ -507,6 +526,9 @@ class RunLog:
     if new_log:
       self._writer.writeheader()
     self._bar = None
+    print(f"{cfg.task}: compiling the agents' act and update steps on the first steps "
+          f"({jax.default_backend()}); this can take a minute or more on a CPU",
+          file=sys.stderr, flush=True)
     if progress:
       from tqdm.auto import tqdm
       self._bar = tqdm(total=cfg.steps, initial=start, desc=cfg.task, unit="step")
@@ -533,15 +555,30 @@ class RunLog:
       if f in metrics and np.isfinite(np.mean(metrics[f][agent])):
         row[f] = float(np.mean(metrics[f][agent]))
     self._writer.writerow(row)
+    self._file.flush()
+    if self._bar is not None and step > self._bar.n:
+      self._bar.update(min(step, self.cfg.steps) - self._bar.n)
+
+  def due(self, before: int, step: int) -> bool:
+    """Whether the loop should call `progress` after moving from `before` to `step`:
+    every `every` steps (`log_every`, at most 2 % of the run) and at the end."""
+    return crossed(self.every, before, step) or step >= self.cfg.steps
 
   def progress(self, step: int) -> None:
-    """Flushes the log and moves the progress bar to `step`."""
+    """Flushes the log and moves the progress bar to `step` (without a bar: prints
+    a progress line to stderr)."""
     self._file.flush()
+    sps = (step - self.start) * len(self.specs) / max(self.wall(), 1e-9)
+    ret = f"{np.mean(self.recent[-10 * len(self.specs):]):.1f}" if self.recent else None
     if self._bar is not None:
       self._bar.update(min(step, self.cfg.steps) - self._bar.n)
-      if self.recent:
-        self._bar.set_postfix(ret=f"{np.mean(self.recent[-10 * len(self.specs):]):.1f}",
-                              sps=f"{(step - self.start) * len(self.specs) / self.wall():.0f}")
+      self._bar.set_postfix(**({"ret": ret} if ret else {}), sps=f"{sps:.1f}")
+    elif step != self._last_line:
+      print(f"{self.cfg.task}: step {min(step, self.cfg.steps):,}/{self.cfg.steps:,} "
+            f"({100 * min(step, self.cfg.steps) / self.cfg.steps:.0f} %), "
+            f"{sps:.1f} transitions/s, {self.wall():.0f} s"
+            + (f", recent return {ret}" if ret else ""), file=sys.stderr, flush=True)
+    self._last_line = step
 
   def close(self) -> None:
     for s, handler in self._previous.items():
@@ -706,7 +743,8 @@ def plot_learning_curve(log_path: str, png_path: str, specs) -> dict:
       steps = sorted(by_step)
       means = [float(np.mean(by_step[t])) for t in steps]
       label = agent_label(seed, aug, augs)
-      ax.plot(steps, means, label=label)
+      # Markers: a run with one finished episode per agent still shows its point.
+      ax.plot(steps, means, marker="o", ms=4, label=label)
       last[label] = means[-1]
   ax.set_xlabel("training step (transitions per agent)")
   ax.set_ylabel("episode return")
