@@ -20,6 +20,11 @@ never finished on the 2-core CPU machine (every thread parked on a futex; 1,000
 envs ran in 0.6 s a step). It only affects XLA's CPU backend, and only if the
 package is imported before JAX's first computation (when XLA reads its flags);
 set the flag yourself to choose otherwise.
+
+mujoco-mjx prints "Failed to import warp: No module named 'warp'" to stdout when
+the optional `warp` package is absent; the package imports `mujoco.mjx` with that
+message dropped (any other message it prints goes to stderr), so stdout carries
+only what a command writes (`train ... | jq` works).
 """
 
 import os as _os
@@ -32,6 +37,25 @@ CPU_SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
 """Added to `XLA_FLAGS` at import unless the flag is set (module docstring)."""
 if "xla_cpu_enable_concurrency_optimized_scheduler" not in _os.environ.get("XLA_FLAGS", ""):
   _os.environ["XLA_FLAGS"] = f"{_os.environ.get('XLA_FLAGS', '')} {CPU_SCHEDULER_FLAG}".strip()
+
+
+
+def _import_mjx_quietly() -> None:
+  """Imports `mujoco.mjx` without its missing-`warp` notices on stdout (module doc)."""
+  import contextlib
+  import io
+  import sys
+  if "mujoco.mjx" in sys.modules:
+    return
+  captured = io.StringIO()
+  with contextlib.redirect_stdout(captured):
+    import mujoco.mjx  # noqa: F401
+  for line in captured.getvalue().splitlines():
+    if "No module named 'warp'" not in line:
+      print(line, file=sys.stderr)
+
+
+_import_mjx_quietly()
 
 from dmcr_jax.models import ALL_TASKS, DOMAIN_TASKS, load
 from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, SeedRange, levels

@@ -30,7 +30,8 @@ ENV_ID = "dmcr/{task}-v0"
 
 
 def _first(info: dict) -> dict:
-  return {k: v[0] for k, v in info.items()}
+  """The one env's info (the vector env's "_<key>" masks dropped)."""
+  return {k: v[0] for k, v in info.items() if not k.startswith("_")}
 
 
 class GymEnv(gymnasium.Env):

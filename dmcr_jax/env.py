@@ -55,8 +55,10 @@ Visual seeds (`visual_seeds=`):
 
 Observations are uint8 (N, H, W, 3·frame_stack), channels-last, oldest frame
 first. `info` holds, per env: "state" (dm_control's state features, flat),
-"visual_seed", "episode" (episodes begun − 1), "episode_step" (agent steps in the
-episode) and "episode_return".
+"visual_seed", "episode_index" (episodes begun − 1), "episode_step" (agent steps
+in the episode) and "episode_return", each with gymnasium's boolean mask
+"_<key>" (every env has every key: all True). "episode" is left to gymnasium's
+`RecordEpisodeStatistics` wrappers, which reserve it.
 """
 
 from __future__ import annotations
@@ -75,7 +77,7 @@ from gymnasium.vector.utils import batch_space
 from dmcr_jax import jax_env, models, physics_env
 from dmcr_jax.checks import positive_int
 from dmcr_jax.visuals import render_model as rmod
-from dmcr_jax.visuals.factors import active_factors
+from dmcr_jax.visuals.factors import check_vary
 from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, SeedRange
 from dmcr_jax.visuals.params import check_seeds
 from dmcr_jax.visuals.render_pool import RenderPool, default_workers
@@ -87,12 +89,46 @@ ACTION_REPEAT = {"walker-walk": 2, "cheetah-run": 4, "hopper-stand": 4, "finger-
 _DOMAIN_REPEAT = {"walker": 2, "cheetah": 4, "hopper": 4, "finger": 2, "ball_in_cup": 4,
                   "cartpole": 8}
 TIMING_PARTS = ("physics", "transfer", "render", "copy")
+INFO_KEYS = ("state", "visual_seed", "episode_index", "episode_step", "episode_return")
+"""The per-env entries of `info` (each also with gymnasium's "_<key>" mask)."""
+MAX_RESET_SEED = 2**32
+"""`reset(seed=…)` and `make(seed=…)` take ints in [0, MAX_RESET_SEED): a JAX key
+holds 32 bits of an int seed, so larger ones would repeat smaller ones' episodes."""
+
+
+def check_reset_seed(seed, num_envs: int) -> np.ndarray | int:
+  """A reset seed as an int, or gymnasium's per-env form (a sequence of `num_envs`
+  ints) as a uint32 array; ValueError naming the rule otherwise."""
+  values = [seed] if np.ndim(seed) == 0 else list(seed)
+  if np.ndim(seed) == 1 and len(values) != num_envs:
+    raise ValueError(f"seed must be an int or {num_envs} ints (one per env), got "
+                     f"{len(values)} ints")
+  for v in values:
+    if (isinstance(v, bool) or not isinstance(v, (int, np.integer))
+        or not 0 <= int(v) < MAX_RESET_SEED):
+      raise ValueError(f"seed must be an int in [0, 2**32) or a list of {num_envs} such "
+                       f"ints (one per env), got {seed!r}")
+  return int(seed) if np.ndim(seed) == 0 else np.asarray(values, np.uint32)
 
 
 def default_frame_skip(task: str) -> int:
   """The action repeat a task uses by default (see `ACTION_REPEAT`)."""
   domain, _ = models.split_name(task)
   return ACTION_REPEAT.get(task, _DOMAIN_REPEAT.get(domain, 4))
+
+
+def check_camera(model, camera, task: str) -> None:
+  """ValueError unless `camera` is a camera id or name of `model` (listing them)."""
+  import mujoco
+  names = [model.camera(i).name or str(i) for i in range(model.ncam)]
+  if isinstance(camera, str):
+    ok = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera) >= 0
+  else:
+    ok = (not isinstance(camera, bool) and isinstance(camera, (int, np.integer))
+          and 0 <= camera < model.ncam)
+  if not ok:
+    raise ValueError(f"camera must be an id in [0, {model.ncam}) or a name of {task}'s "
+                     f"cameras ({', '.join(names)}), got {camera!r}")
 
 
 def _seed_source(visual_seeds, num_envs: int) -> SeedRange | np.ndarray:
@@ -164,12 +200,14 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     self.frame_stack = positive_int("frame_stack", frame_stack)
     h, w = (image_size, image_size) if np.ndim(image_size) == 0 else tuple(image_size)
     self.height, self.width = positive_int("image height", h), positive_int("image width", w)
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+    if np.ndim(seed) != 0:
       raise ValueError(f"seed must be an int, got {seed!r}")
-    active_factors(domain, vary)  # validates `vary`, listing the factors
+    check_reset_seed(seed, num_envs)
+    check_vary(domain, vary)  # validates `vary`, listing the factors
     self.task_name, self.domain, self.vary, self.camera = task, domain, vary, camera
     self.seeds = self._check_seeds(_seed_source(visual_seeds, n))
     self.task = models.load(task, solver_iterations, ls_iterations)
+    check_camera(self.task.mj_model, camera, task)
     self.num_envs = n
     self.single_action_space = gymnasium.spaces.Box(
         self.task.action_low, self.task.action_high, (self.task.action_size,), np.float32)
@@ -218,7 +256,7 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
       ValueError: bad seeds or factors (the env is left unchanged).
     """
     vary = self.vary if vary is None else vary
-    active_factors(self.domain, vary)
+    check_vary(self.domain, vary)
     seeds = self._check_seeds(_seed_source(visual_seeds, self.num_envs))
     self.seeds, self.vary = seeds, vary
     self._use_seeds()
@@ -254,7 +292,9 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     """Starts a new episode in every env.
 
     Args:
-      seed: re-seeds the dynamics keys (and few-shot seed draws); None continues
+      seed: an int in [0, 2**32) re-seeds the dynamics keys (and few-shot seed
+        draws); a list of N such ints (gymnasium's per-env form) gives env i the
+        key of seed[i], so its episodes depend on seed[i] alone; None continues
         the env's key stream (a different episode each call).
       options: not used (must be None or empty).
 
@@ -264,9 +304,12 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     if options:
       raise ValueError(f"{type(self).__name__}.reset takes no options, got {sorted(options)}")
     if seed is not None:
-      if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
-        raise ValueError(f"seed must be an int or None, got {seed!r}")
-      self._key = jax.random.key(int(seed))
+      seed = check_reset_seed(seed, self.num_envs)
+      if np.ndim(seed) == 1:
+        keys = jax.vmap(jax.random.key)(jnp.asarray(seed))
+        self._key = jax.random.fold_in(keys[0], self.num_envs)
+        return self._reset(keys)
+      self._key = jax.random.key(seed)
     self._key, key = jax.random.split(self._key)
     self._pending = None
     return self._reset(self._on_physics(key))
@@ -360,15 +403,18 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
 
   def _host_fields(self, es: physics_env.EnvState, reward, truncated) -> dict:
     """What the host reads of a step besides pixels (fetched with them)."""
-    out = {"state": es.task.obs, "visual_seed": es.visual_seed, "episode": es.episode,
-           "episode_step": es.episode_step, "episode_return": es.episode_return}
+    out = {"state": es.task.obs, "visual_seed": es.visual_seed,
+           "episode_index": es.episode, "episode_step": es.episode_step,
+           "episode_return": es.episode_return}
     if reward is not None:
       out["reward"], out["truncated"] = reward, truncated
     return out
 
   def _info(self, host: dict) -> dict:
-    return {k: host[k] for k in ("state", "visual_seed", "episode", "episode_step",
-                                 "episode_return")}
+    info = {k: host[k] for k in INFO_KEYS}
+    every = np.ones(self.num_envs, bool)
+    info.update({f"_{k}": every for k in INFO_KEYS})
+    return info
 
 
 class PixelVectorEnv(_PixelEnvBase):
@@ -389,6 +435,8 @@ class PixelVectorEnv(_PixelEnvBase):
                solver_iterations: int | None = None, ls_iterations: int | None = None,
                physics_device: str | None = None):
     self._pool = None
+    if workers is not None:
+      positive_int("workers", workers)
     super().__init__(task, num_envs, visual_seeds, vary, frame_skip, frame_stack,
                      image_size, camera, seed, solver_iterations, ls_iterations,
                      physics_device)
@@ -607,18 +655,21 @@ def make(task: str, num_envs: int = 1, visual_seeds: Any = 0,
     visual_seeds: an int (every env), N ints (one per env), or a `SeedRange`
       drawn from at every reset (few-shot: `levels(1000)`; test: `TEST_SEEDS`;
       with renderer="jax" at most `jax_env.MAX_RANGE_LOOKS` seeds).
-    vary: factors the visual seeds change ("all", "none", "floor,background", …).
+    vary: factors the visual seeds change ("all", "none", "floor,background", …;
+      named factors must apply to the task's domain, `visuals.factors.APPLICABLE`).
     frame_skip: control steps per agent step, rewards summed (default: the
       paper's action repeat, `default_frame_skip(task)`).
     frame_stack: frames per observation, stacked on the channel axis.
     image_size: H = W, or (H, W).
     camera: camera id or name (camera 0 is the one the visual seeds move).
-    seed: dynamics seed (initial states; and few-shot seed draws).
+    seed: dynamics seed, an int in [0, 2**32) (initial states; and few-shot seed
+      draws).
     renderer: "pool" (default: MuJoCo's renderer in CPU worker processes,
       dm_control's pixels) or "jax" (the JAX ray caster on the device, physics,
       frames and stacks in one jitted call; close to MuJoCo's pixels, not equal).
     **kwargs: for "pool": `workers`, `quality` ("exact", "fast", "fastest"), `gl`
-      ("egl", "osmesa") for the `RenderPool`, `copy_obs` (default True; False
+      ("egl", the default, or "osmesa", which needs the OSMesa library; no
+      environment variable needed) for the `RenderPool`, `copy_obs` (default True; False
       returns views of shared memory, see the module docstring). For "jax"
       (which has no workers and no quality presets): `shadows`, `reflection`
       (default True: MuJoCo's picture), `render_chunk` (envs per render chunk,
@@ -638,9 +689,11 @@ def make(task: str, num_envs: int = 1, visual_seeds: Any = 0,
     `reset()` first.
 
   Raises:
-    ValueError: unknown task, factor, renderer, quality or GL backend (the message
-      lists the valid ones), num_envs ≤ 0, a visual-seed count other than 1 or N,
-      an option of the other renderer, a SeedRange too large for renderer="jax".
+    ValueError: unknown task, factor, camera, renderer, quality or GL backend (the
+      message lists the valid ones), a factor that does not apply to the task's
+      domain or an empty `vary`, num_envs or workers ≤ 0, a seed outside
+      [0, 2**32), a visual-seed count other than 1 or N, an option of the other
+      renderer, a SeedRange too large for renderer="jax".
   """
   if renderer not in RENDERERS:
     raise ValueError(f"Unknown renderer {renderer!r}; valid: {', '.join(RENDERERS)}.")

@@ -78,10 +78,14 @@ def _reset_where(task: Task, seeds: SeedSource, es: EnvState, mask: jax.Array) -
 
 
 def init(task: Task, seeds: SeedSource, key: jax.Array, num_envs: int) -> EnvState:
-  """Starts N envs: every env gets its own key from `key` and a first episode."""
+  """Starts N envs: every env gets its own key and a first episode.
+
+  `key`: one key (split into the N envs' keys) or N keys, shape (N,) (env i's).
+  """
   n = int(num_envs)
+  keys = key if key.shape == (n,) else jax.random.split(key, n)
   state, seed, keys = jax.vmap(lambda k, i: _reset_one(task, seeds, k, i))(
-      jax.random.split(key, n), jnp.arange(n))
+      keys, jnp.arange(n))
   return EnvState(task=state, visual_seed=seed, key=keys,
                   needs_reset=jnp.zeros((n,), bool), episode=jnp.zeros((n,), jnp.int32),
                   episode_step=jnp.zeros((n,), jnp.int32),

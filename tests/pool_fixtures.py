@@ -33,3 +33,15 @@ class ToyRenderer:
       if mode == RAISE:
         raise ValueError(f"bad env value {inputs['value'][i]}")
       out[i] = inputs["value"][i] + 1
+
+
+IMPORT_ENV = os.environ.get("DMCR_POOL_TEST_VAR")
+"""The variable as this module saw it when a worker imported it (unpickling the
+factory, before the worker's own code runs)."""
+
+
+class ImportEnvRenderer:
+  """Writes 1 where the worker's imports saw DMCR_POOL_TEST_VAR == "set", else 0."""
+
+  def __call__(self, inputs, out):
+    out[:] = float(IMPORT_ENV == "set")

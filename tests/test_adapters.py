@@ -65,3 +65,60 @@ def test_dm_env_protocol():
     assert env.step(np.zeros(1, np.float32)).first()  # step after LAST starts anew
   finally:
     env.close()
+
+
+def test_gymnasium_vector_episode_statistics_wrapper_over_episode_ends():
+  from gymnasium.wrappers.vector import RecordEpisodeStatistics
+  env = RecordEpisodeStatistics(dmcr_jax.make("pendulum-swingup", num_envs=2, frame_skip=100,
+                                              image_size=16, workers=1))
+  try:
+    obs, info = env.reset(seed=[0, 1])  # gymnasium's per-env seeds
+    assert info["_episode_index"].all() and "episode" not in info
+    ends = 0
+    for t in range(1, 23):  # two episodes of 10 steps each, and a reset step between
+      obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+      if truncated.any():
+        ends += 1
+        assert truncated.all() and info["_episode"].all()
+        np.testing.assert_allclose(info["episode"]["r"], info["episode_return"], rtol=1e-6)
+        assert list(info["episode"]["l"]) == [10, 10]
+    assert ends == 2 and len(env.return_queue) == 4
+  finally:
+    env.close()
+
+
+def test_gymnasium_episode_statistics_wrapper_over_episode_ends():
+  env = gymnasium.wrappers.RecordEpisodeStatistics(gymnasium.make(
+      "dmcr/pendulum-swingup-v0", frame_skip=100, image_size=16, workers=1))
+  try:
+    env.reset(seed=0)
+    ends = 0
+    for _ in range(2):
+      truncated = False
+      while not truncated:
+        _, _, _, truncated, info = env.step(env.action_space.sample())
+      ends += 1
+      assert info["episode"]["l"] == 10
+      np.testing.assert_allclose(info["episode"]["r"], info["episode_return"], rtol=1e-6)
+      assert not any(k.startswith("_") for k in info)
+      env.reset()
+    assert ends == 2
+  finally:
+    env.close()
+
+
+def test_reset_takes_one_seed_per_env_and_refuses_bad_seeds():
+  with dmcr_jax.make("pendulum-swingup", num_envs=2, frame_skip=100, image_size=16,
+                     workers=1) as env:
+    _, a = env.reset(seed=[3, 5])
+    _, b = env.reset(seed=[5, 3])
+    _, c = env.reset(seed=[3, 9])
+    # Env i's initial state depends on seed[i] alone.
+    np.testing.assert_array_equal(a["state"], b["state"][::-1])
+    np.testing.assert_array_equal(a["state"][0], c["state"][0])
+    assert not np.array_equal(a["state"][1], c["state"][1])
+    for bad in (2**70, -1, [1, 2, 3], 1.5, [0, 2**32]):
+      with pytest.raises(ValueError, match=r"seed must be an int in \[0, 2\*\*32\)|2 ints"):
+        env.reset(seed=bad)
+  with pytest.raises(ValueError, match="seed"):
+    dmcr_jax.make("pendulum-swingup", seed=2**70)

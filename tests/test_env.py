@@ -66,7 +66,7 @@ def test_autoreset_and_frame_stack_at_episode_boundaries(env):
   obs, info = env.reset(seed=4)
   assert obs.shape == (3, 32, 32, 9) and obs.dtype == np.uint8
   np.testing.assert_array_equal(obs[..., 0:3], obs[..., 6:9])  # first frame, repeated
-  assert list(info["episode"]) == [0, 0, 0] and list(info["episode_step"]) == [0, 0, 0]
+  assert list(info["episode_index"]) == [0, 0, 0] and list(info["episode_step"]) == [0, 0, 0]
   total = np.zeros(3)
   for t in range(1, 2 * EPISODE + 3):
     prev = obs
@@ -86,7 +86,7 @@ def test_autoreset_and_frame_stack_at_episode_boundaries(env):
       np.testing.assert_array_equal(obs[..., :-3], prev[..., 3:])
       total += reward
       np.testing.assert_allclose(info["episode_return"], total, rtol=1e-5)
-    assert list(info["episode"]) == [t // (EPISODE + 1)] * 3
+    assert list(info["episode_index"]) == [t // (EPISODE + 1)] * 3
   assert list(info["visual_seed"]) == SEEDS
 
 
@@ -188,6 +188,14 @@ def test_bad_input_is_rejected_and_the_env_keeps_working(env):
     (dict(image_size=(32, 0)), "image width must be a positive int"),
     (dict(quality="ultra"), "valid: exact, fast, fastest"),
     (dict(gl="vulkan"), "valid: egl, osmesa"),
+    # Checked before any worker starts (camera 99 failed inside a render worker;
+    # the others were accepted silently).
+    (dict(camera=99), r"camera must be an id in \[0, 2\) or a name .*fixed, lookat"),
+    (dict(camera="top"), "camera must be an id"),
+    (dict(vary=""), "vary is empty"),
+    (dict(vary="target,floor"), "target do\\(es\\) not apply to pendulum"),
+    (dict(workers=0), "workers must be a positive int"),
+    (dict(seed=2**70), r"seed must be an int in \[0, 2\*\*32\)"),
 ])
 def test_make_rejects_bad_arguments(kwargs, match):
   with pytest.raises((ValueError, TypeError), match=match):
@@ -249,7 +257,7 @@ def test_memory_does_not_grow_over_10000_steps():
     for _ in range(9000):
       _, _, _, _, info = env.step(a)
     after = _rss_mib(pids)
-  assert info["episode"].min() >= 9  # episodes of 1,000 steps went by (with resets)
+  assert info["episode_index"].min() >= 9  # episodes of 1,000 steps went by (with resets)
   assert after - before < 20, f"RSS grew from {before:.0f} to {after:.0f} MiB"
 
 

@@ -167,3 +167,15 @@ def test_episode_video_tiles_the_looks_frame_by_frame(run_dir, tmp_path):
   # side by side, doubled.
   assert len(frames) == 10
   assert np.asarray(frames[0]).shape[:2] == (32, 64)
+
+
+def test_eval_json_is_valid_json_when_e_g_is_undefined(run_dir, tmp_path, monkeypatch):
+  # A train return of 0 leaves E_G undefined (NaN); eval.json held a literal NaN.
+  monkeypatch.setattr(ev, "run_episodes", lambda env, policy, seed: np.zeros(env.num_envs))
+  summary = ev.evaluate(run_dir, ev.EvalConfig(**{**TINY.__dict__, "conditions": ("none",)}),
+                        out_dir=str(tmp_path), agents=[0], progress=False)
+  assert np.isnan(summary["agents"][0]["conditions"]["none"]["e_g"])
+  with open(tmp_path / "eval.json") as f:
+    saved = json.loads(f.read(), parse_constant=lambda c: pytest.fail(f"invalid JSON: {c}"))
+  assert saved["agents"][0]["conditions"]["none"]["e_g"] is None
+  assert saved["mean"]["e_g"]["none"] is None

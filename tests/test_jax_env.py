@@ -110,7 +110,7 @@ def test_autoreset_and_frame_stacks_at_episode_boundaries(rollouts, envs):
       np.testing.assert_array_equal(obs[t][..., :-3], obs[t - 1][..., 3:])
       total += reward
       np.testing.assert_allclose(info[t]["episode_return"], total, rtol=1e-5)
-    assert list(info[t]["episode"]) == [t // (EPISODE + 1)] * N
+    assert list(info[t]["episode_index"]) == [t // (EPISODE + 1)] * N
   np.testing.assert_array_equal(envs[0].render(), obs[-1][..., -3:])
 
 

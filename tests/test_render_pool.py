@@ -129,3 +129,16 @@ def test_shift_stacks_is_the_strided_shift():
     np.testing.assert_array_equal(out[..., :-3], prev[..., 3:])
   with pytest.raises(AttributeError):  # never a silent copy of a strided view
     shift_stacks(np.zeros((4, 2, 2, 9), np.uint8)[::2], np.zeros((2, 2, 2, 9), np.uint8))
+
+
+def test_gl_default_and_osmesa_check(monkeypatch):
+  from dmcr_jax.visuals import render_pool as rp
+  monkeypatch.delenv("MUJOCO_GL", raising=False)
+  assert rp.default_gl() == "egl"  # with or without a GPU (Mesa's EGL renders on a CPU)
+  monkeypatch.setenv("MUJOCO_GL", "osmesa")
+  assert rp.default_gl() == "osmesa"
+  monkeypatch.setenv("MUJOCO_GL", "glfw")
+  assert rp.default_gl() == "egl"
+  monkeypatch.setattr(rp.ctypes.util, "find_library", lambda name: None)
+  with pytest.raises(ValueError, match="libosmesa6"):
+    RenderPool("reacher-easy", max_batch=1, gl="osmesa")

@@ -30,7 +30,13 @@ CFG = dict(task="pendulum-swingup", action_repeat=100, image_size=16, buffer_cap
     (["--steps", "0"], "steps must be a positive int"),
     (["--utd", "0"], "utd must be > 0"),
     (["--quality", "best"], "valid: exact, fast, fastest"),
-    (["--visual-seeds", "some"], "invalid literal"),
+    (["--visual-seeds", "some"], "visual_seeds must be an int in [0, 2**31"),
+    (["--visual-seeds", "-1"], "visual_seeds must be an int in [0, 2**31"),
+    (["--visual-seeds", "levels:0"], "'levels:<n>' with n ≥ 1"),
+    (["--vary", ""], "vary is empty"),
+    (["--vary", "target"], "target do(es) not apply to cartpole"),
+    (["--workers", "0"], "workers must be a positive int"),
+    (["--seeds", "-1"], "seeds must be distinct ints in [0, 2**31)"),
     (["--image-size", "8"], "image_size must be >= 16"),
     (["--buffer-capacity", "3"], "buffer_capacity must be at least"),
     (["--dtype", "float16"], "float32, bfloat16"),
@@ -48,6 +54,49 @@ def test_defaults_follow_the_paper():
   assert cfg.task == "cartpole-balance" and cfg.steps == 50_000 and cfg.warmup_steps == 1000
   assert cfg.buffer_capacity == 100_000 and cfg.frame_stack == 3 and cfg.image_size == 84
   assert cfg.sac.batch_size == 256 and cfg.sac.aug == "drq" and cfg.action_repeat is None
+
+
+def _saved_run(tmp_path):
+  """A run folder holding config.json (and no checkpoint); its config and text."""
+  out = str(tmp_path / "run")
+  os.makedirs(out)
+  cfg = loop.TrainConfig(steps=300, warmup_steps=20, out_dir=out, seeds=(3,),
+                         **{k: v for k, v in CFG.items() if k != "warmup_steps"})
+  loop.save_config(cfg, out)
+  with open(os.path.join(out, "config.json")) as f:
+    return cfg, f.read()
+
+
+def test_resume_takes_every_setting_from_the_runs_config(tmp_path, capsys):
+  cfg, text = _saved_run(tmp_path)
+  resumed, _ = parse(["--out", cfg.out_dir, "--resume"])
+  assert resumed == cfg  # not the command line's defaults (50,000 steps, image 84, ...)
+  # Flags that may change are applied; equal ones are accepted.
+  resumed, _ = parse(["--out", cfg.out_dir, "--resume", "--steps", "900", "--log-every",
+                      "7", "--task", "pendulum-swingup", "--image-size", "16"])
+  assert resumed == loop.dataclasses.replace(cfg, steps=900, log_every=7)
+  # Others are refused, naming them; nothing is written.
+  with pytest.raises(SystemExit):
+    parse(["--out", cfg.out_dir, "--resume", "--image-size", "32", "--warmup-steps", "1000"])
+  err = capsys.readouterr().err
+  assert "--image-size 32 (the run has 16)" in err and "--warmup-steps" in err
+  with open(os.path.join(cfg.out_dir, "config.json")) as f:
+    assert f.read() == text
+  # A mistyped folder is refused and not created.
+  with pytest.raises(SystemExit):
+    parse(["--out", str(tmp_path / "rnu"), "--resume"])
+  assert "no run" in capsys.readouterr().err and not os.path.exists(tmp_path / "rnu")
+
+
+def test_open_run_checks_a_resumed_config_before_writing(tmp_path):
+  cfg, text = _saved_run(tmp_path)
+  with pytest.raises(ValueError, match=r"image_size \(32, the run has 16\)"):
+    loop.open_run(loop.dataclasses.replace(cfg, image_size=32), resume=True)
+  with pytest.raises(FileNotFoundError, match="no checkpoint"):
+    loop.open_run(loop.dataclasses.replace(cfg, steps=600), resume=True)
+  with open(os.path.join(cfg.out_dir, "config.json")) as f:
+    assert f.read() == text
+  assert os.listdir(cfg.out_dir) == ["config.json"]
 
 
 def test_checkpoint_round_trip(tmp_path):
@@ -110,9 +159,10 @@ def test_interrupted_run_resumes_where_it_stopped(tmp_path):
   assert agents.step.shape == (2,) and int(agents.step[0]) > 0
   with pytest.raises(FileExistsError, match="--resume"):
     loop.train(cfg, progress=False)  # a new run would overwrite this one
-  with pytest.raises(FileNotFoundError, match="no checkpoint"):
+  with pytest.raises(FileNotFoundError, match="no run in"):
     loop.train(loop.TrainConfig(steps=5, out_dir=str(tmp_path / "empty"), **CFG),
                resume=True, progress=False)
+  assert not os.path.exists(tmp_path / "empty")
   jax.config.update("jax_compilation_cache_dir", None)
 
 
@@ -183,3 +233,48 @@ def test_agents_sharded_over_two_devices_or_mapped_match_one_vmapped_call():
   out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                        env=env, timeout=600)
   assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-3000:]
+
+
+def test_run_log_reports_progress_every_few_percent_and_announces_compiling(tmp_path, capsys):
+  # A CPU run of 600 steps with log_every 1,000 showed 0/600 and an empty log.csv
+  # until its end, and compiled for a minute without a word.
+  cfg = loop.TrainConfig(steps=600, log_every=1000, out_dir=str(tmp_path), **{
+      k: v for k, v in CFG.items() if k != "log_every"})
+  log = loop.RunLog(cfg, 0, resume=False, progress=False)
+  try:
+    assert "compiling" in capsys.readouterr().err
+    assert log.every == 12  # 2 % of the run
+    assert log.due(10, 12) and not log.due(0, 11) and log.due(599, 600)
+    log.progress(12)
+    assert "step 12/600 (2 %)" in capsys.readouterr().err
+    log.episode(14, 0, 123.5, 1.0, {})
+    with open(os.path.join(str(tmp_path), "log.csv")) as f:  # written at once
+      assert [r["episode_return"] for r in csv.DictReader(f)] == ["123.5"]
+  finally:
+    log.close()
+
+
+def test_learning_curve_shows_a_single_point(tmp_path):
+  import matplotlib.image
+  path = str(tmp_path / "log.csv")
+  with open(path, "w") as f:
+    f.write("step,agent,seed,aug,episode_return\n300,0,0,drq,40.0\n")
+  png = str(tmp_path / "curve.png")
+  assert loop.plot_learning_curve(path, png, [(0, "drq")]) == {"seed 0": 40.0}
+  rgb = matplotlib.image.imread(png)[..., :3]
+  blue = np.abs(rgb - np.array([0x1f, 0x77, 0xb4]) / 255).max(axis=-1) < 0.1  # line colour C0
+  h, w = blue.shape
+  # The lone point sits mid-axes (the legend goes to a corner): a marker there.
+  assert blue[h // 4:3 * h // 4, w // 3:2 * w // 3].sum() > 5
+
+
+def test_train_command_reports_progress_every_2_percent(tmp_path, monkeypatch):
+  import train.__main__ as cli
+  seen = {}
+
+  def fake_train(cfg, **kwargs):
+    seen["cfg"] = cfg
+    return {"interrupted": False}
+  monkeypatch.setattr(cli, "train", fake_train)
+  cli.main(["--steps", "600", "--out", str(tmp_path / "run")])
+  assert seen["cfg"].log_every == 12  # not the default 1,000 (> the run)

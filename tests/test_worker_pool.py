@@ -137,3 +137,17 @@ def test_bad_arguments(tmp_path):
     for bad in (0, 5, -1):
       with pytest.raises(ValueError, match=r"batch must be in \[1, 4\]"):
         pool.run(bad)
+
+
+def test_worker_env_is_set_before_the_worker_imports_anything():
+  # MuJoCo and PyOpenGL read MUJOCO_GL / PYOPENGL_PLATFORM once, when the worker
+  # unpickles its factory; gl="osmesa" failed unless the caller had exported them.
+  assert "DMCR_POOL_TEST_VAR" not in os.environ
+  pool = WorkerPool(fx.ImportEnvRenderer, (), IN, OUT, max_batch=2, workers=1,
+                    env={"DMCR_POOL_TEST_VAR": "set"})
+  try:
+    assert "DMCR_POOL_TEST_VAR" not in os.environ  # the caller's env is restored
+    fill(pool, 2)
+    assert (pool.run(2) == 1).all()
+  finally:
+    pool.close()

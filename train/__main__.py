@@ -29,19 +29,34 @@ paper's Table 6) unless `--lr` is given.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import os
 import sys
 
-from train.loop import CPU_PHYSICS_MAX_ENVS, PHYSICS, TrainConfig, check_config, train
-from train.sac import ALGOS, SACConfig
+from train.loop import (AGENT_LOOPS, CPU_PHYSICS_MAX_ENVS, PHYSICS, RENDERERS, RESUMABLE,
+                        TrainConfig, check_config, load_config, progress_every, train)
+from train.sac import ALGOS, COMPUTE_DTYPES, SACConfig
 
 
-def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+  """argparse's help with "(default: …)" after every option whose default is a value
+  (None and off switches say nothing: their help says what happens)."""
+
+  def _get_help_string(self, action):
+    if action.default is None or action.default is False:
+      return action.help
+    return super()._get_help_string(action)
+
+
+def build_parser() -> argparse.ArgumentParser:
+  """The `train` command line (defaults from `TrainConfig` and `SACConfig`)."""
+  from dmcr_jax.visuals.tiled import QUALITY
   d, s = TrainConfig(), SACConfig()
-  p = argparse.ArgumentParser(prog="train", description=__doc__.splitlines()[0])
-  p.add_argument("--task", default=d.task, help="a DMCR task (default: %(default)s)")
-  p.add_argument("--algo", default=s.algo, choices=ALGOS,
-                 help="learner: sac_aug (default), curl or sac_ae")
+  p = argparse.ArgumentParser(prog="train", description=__doc__.splitlines()[0],
+                              formatter_class=HelpFormatter)
+  p.add_argument("--task", default=d.task, help="a DMCR task")
+  p.add_argument("--algo", default=s.algo, choices=ALGOS, help="learner")
   p.add_argument("--aug", default=None,
                  help="augmentation name, e.g. drq, cj+drq, nr+drq; comma-separated "
                       "names train one agent per name and seed (default: drq for "
@@ -50,44 +65,90 @@ def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
                  help="learning rate of the critic, actor and encoder (default 1e-3; "
                       "2e-4 for curl on cheetah)")
   p.add_argument("--steps", type=int, default=d.steps,
-                 help="training steps (transitions) per agent")
-  p.add_argument("--seeds", default="0", help="comma-separated: one agent per seed")
+                 help="training steps (transitions) per agent; with --resume, a larger "
+                      "value extends the run")
+  p.add_argument("--seeds", default=",".join(map(str, d.seeds)),
+                 help="comma-separated: one agent per seed")
   p.add_argument("--num-envs", type=int, default=d.num_envs, help="envs per agent")
   p.add_argument("--visual-seeds", default=str(d.visual_seeds),
                  help="an int (fixed look, 0 = dm_control's) or levels:<n> (few-shot)")
-  p.add_argument("--vary", default=d.vary, help="factors the visual seeds change")
+  p.add_argument("--vary", default=d.vary,
+                 help="factors the visual seeds change: all, none or a comma-separated "
+                      "subset of camera, light, body, target, floor, background, "
+                      "reflectance")
   p.add_argument("--action-repeat", type=int, default=None,
                  help="default: the paper's Table 4 value for the task")
   p.add_argument("--utd", type=float, default=d.utd, help="updates per training step")
   p.add_argument("--warmup-steps", type=int, default=d.warmup_steps,
                  help="random-action training steps per agent before learning")
-  p.add_argument("--buffer-capacity", type=int, default=d.buffer_capacity)
+  p.add_argument("--buffer-capacity", type=int, default=d.buffer_capacity,
+                 help="replay buffer size, transitions per agent")
   p.add_argument("--batch-size", type=int, default=None,
                  help="default: 256 (128 for sac_ae)")
   p.add_argument("--image-size", type=int, default=None,
                  help="rendered side (default: 84; 100 for curl)")
-  p.add_argument("--renderer", default=d.renderer,
-                 help="pool (MuJoCo in CPU workers, the default) or jax (the JAX ray "
-                      "caster; training runs in chunks of --chunk-steps on the device)")
+  p.add_argument("--renderer", default=d.renderer, metavar="{" + ",".join(RENDERERS) + "}",
+                 help="pool (MuJoCo in CPU workers) or jax (the JAX ray caster on the "
+                      "device)")
   p.add_argument("--physics", default=d.physics, choices=PHYSICS,
                  help="where the physics steps: auto (the host CPU for at most "
                       f"{CPU_PHYSICS_MAX_ENVS} envs in all when the learner runs on "
-                      "an accelerator, else the device), cpu or device (default: "
-                      "%(default)s)")
+                      "an accelerator, else the device), cpu or device")
   p.add_argument("--chunk-steps", type=int, default=d.chunk_steps,
-                 help="--renderer jax: vector steps per device call (default: %(default)s)")
-  p.add_argument("--quality", default=d.quality,
-                 help="render preset: exact, fast, fastest (--renderer pool)")
-  p.add_argument("--workers", type=int, default=None, help="render workers (--renderer pool)")
+                 help="--renderer jax with the physics on the device: vector steps per "
+                      "device call")
+  p.add_argument("--quality", default=d.quality, metavar="{" + ",".join(QUALITY) + "}",
+                 help="render preset (--renderer pool)")
+  p.add_argument("--workers", type=int, default=None,
+                 help="render workers (--renderer pool; default: one per core, at most 16)")
   p.add_argument("--dtype", default=s.compute_dtype,
-                 help="compute dtype of the networks: float32 or bfloat16")
-  p.add_argument("--agent-loop", default=d.agent_loop,
-                 help="how K agents' updates are batched: vmap or map")
-  p.add_argument("--checkpoint-every", type=int, default=d.checkpoint_every)
-  p.add_argument("--log-every", type=int, default=d.log_every)
+                 metavar="{" + ",".join(COMPUTE_DTYPES) + "}",
+                 help="compute dtype of the networks")
+  p.add_argument("--agent-loop", default=d.agent_loop, metavar="{" + ",".join(AGENT_LOOPS) + "}",
+                 help="how K agents' updates are batched (default: map on accelerators, "
+                      "vmap on CPU)")
+  p.add_argument("--checkpoint-every", type=int, default=d.checkpoint_every,
+                 help="steps between checkpoints (0: only at the end and on Ctrl-C)")
+  p.add_argument("--log-every", type=int, default=d.log_every,
+                 help="steps between progress updates; `train` makes it at most 2%% of "
+                      "--steps (recorded in config.json)")
   p.add_argument("--out", default=None, help="output folder (default: runs/<task>-<aug>)")
-  p.add_argument("--resume", action="store_true", help="continue from the latest checkpoint")
-  p.add_argument("--no-progress", action="store_true")
+  p.add_argument("--resume", action="store_true",
+                 help="continue the run in --out from its latest checkpoint, with the "
+                      "settings in its config.json (flags that differ from them are "
+                      f"refused, except {', '.join('--' + f.replace('_', '-') for f in RESUMABLE)})")
+  p.add_argument("--no-progress", action="store_true",
+                 help="no progress bar (progress lines on stderr instead)")
+  return p
+
+
+FLAG_FIELDS = {
+    "task": lambda c: c.task, "algo": lambda c: c.sac.algo, "aug": lambda c: c.sac.aug,
+    "lr": lambda c: (c.sac.critic_lr, c.sac.actor_lr, c.sac.encoder_lr),
+    "steps": lambda c: c.steps, "seeds": lambda c: tuple(c.seeds),
+    "num_envs": lambda c: c.num_envs, "visual_seeds": lambda c: c.visual_seeds,
+    "vary": lambda c: c.vary, "action_repeat": lambda c: c.action_repeat,
+    "utd": lambda c: c.utd, "warmup_steps": lambda c: c.warmup_steps,
+    "buffer_capacity": lambda c: c.buffer_capacity, "batch_size": lambda c: c.sac.batch_size,
+    "image_size": lambda c: c.image_size, "renderer": lambda c: c.renderer,
+    "chunk_steps": lambda c: c.chunk_steps, "physics": lambda c: c.physics,
+    "quality": lambda c: c.quality,
+    "workers": lambda c: c.workers, "dtype": lambda c: c.sac.compute_dtype,
+    "agent_loop": lambda c: c.agent_loop, "checkpoint_every": lambda c: c.checkpoint_every,
+    "log_every": lambda c: c.log_every}
+"""Each flag's value in a `TrainConfig` (for `--resume`'s comparison)."""
+
+
+def explicit_flags(argv) -> set[str]:
+  """The options given on the command line (argparse dests), defaults left out."""
+  q = build_parser()
+  for action in q._actions:
+    action.default = argparse.SUPPRESS
+  return set(vars(q.parse_args(argv)))
+
+
+def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
+  p = build_parser()
   a = p.parse_args(argv)
   try:
     seeds = tuple(int(x) for x in a.seeds.split(","))
@@ -97,7 +158,9 @@ def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
     rates = {} if lr is None else dict(critic_lr=lr, actor_lr=lr, encoder_lr=lr)
     sac_cfg = SACConfig(algo=a.algo, aug=a.aug, batch_size=a.batch_size,
                         compute_dtype=a.dtype, **rates)
-    visual = a.visual_seeds if a.visual_seeds.startswith("levels:") else int(a.visual_seeds)
+    visual = a.visual_seeds
+    if visual.lstrip("-").isdigit():
+      visual = int(visual)
     cfg = TrainConfig(task=a.task, steps=a.steps, seeds=seeds, num_envs=a.num_envs,
                       action_repeat=a.action_repeat, visual_seeds=visual, vary=a.vary,
                       warmup_steps=a.warmup_steps, utd=a.utd,
@@ -107,10 +170,38 @@ def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
                       renderer=a.renderer, chunk_steps=a.chunk_steps, physics=a.physics,
                       out_dir=a.out or default_out(a.task, sac_cfg),
                       sac=sac_cfg)
+    if a.resume:
+      cfg = resumed_config(cfg, explicit_flags(argv))
     check_config(cfg)
-  except ValueError as e:
+  except (ValueError, FileNotFoundError) as e:
     p.error(str(e))
   return cfg, a
+
+
+def resumed_config(cli: TrainConfig, given: set[str]) -> TrainConfig:
+  """The config of the run in `cli.out_dir` (its config.json), with the flags in
+  `given` that may change (`RESUMABLE`) applied.
+
+  Raises:
+    FileNotFoundError: no config.json there (nothing is created).
+    ValueError: a given flag differs from the run's setting and may not change.
+  """
+  if not os.path.exists(os.path.join(cli.out_dir, "config.json")):
+    raise FileNotFoundError(f"--resume: no run in {cli.out_dir!r} (no config.json); "
+                            "check the folder (--out)")
+  saved = load_config(cli.out_dir)
+  refused = [f"--{f.replace('_', '-')} {FLAG_FIELDS[f](cli)!r} (the run has "
+             f"{FLAG_FIELDS[f](saved)!r})"
+             for f in sorted(given & set(FLAG_FIELDS))
+             if f not in RESUMABLE and FLAG_FIELDS[f](cli) != FLAG_FIELDS[f](saved)]
+  if refused:
+    raise ValueError(f"--resume continues {cli.out_dir} with the settings in its "
+                     f"config.json; these flags differ from them: {'; '.join(refused)}. "
+                     f"Drop them, or start a new run with another --out (only "
+                     f"{', '.join('--' + f.replace('_', '-') for f in RESUMABLE)} may "
+                     "change on resume)")
+  changes = {f: getattr(cli, f) for f in RESUMABLE if f in given}
+  return dataclasses.replace(saved, out_dir=cli.out_dir, **changes)
 
 
 def default_out(task: str, sac_cfg: SACConfig) -> str:
@@ -123,9 +214,11 @@ def default_out(task: str, sac_cfg: SACConfig) -> str:
 
 def main(argv=None) -> None:
   cfg, a = parse(argv)
+  # Progress at least every 2 % of the run, whatever --log-every says.
+  cfg = dataclasses.replace(cfg, log_every=progress_every(cfg))
   try:
     summary = train(cfg, resume=a.resume, progress=not a.no_progress)
-  except (FileExistsError, FileNotFoundError) as e:
+  except (ValueError, FileExistsError, FileNotFoundError) as e:
     sys.exit(f"train: error: {e}")
   print(json.dumps(summary, indent=1))
   if summary["interrupted"]:

@@ -113,7 +113,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
         metrics = {name: v[s] for name, v in out["metrics"].items()}
         log.episode(int(out["step"][s]), int(i // n), float(out["episode_return"][s, i]),
                     wall, metrics)
-      if loop.crossed(cfg.log_every, before, step) or step >= cfg.steps:
+      if log.due(before, step):
         log.progress(step)
       if loop.crossed(cfg.checkpoint_every, before, step):
         loop._save(manager, step, carry.learner.agents, carry.learner.key)

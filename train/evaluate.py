@@ -115,6 +115,8 @@ def check_eval_config(cfg: EvalConfig, task: str) -> tuple[str, ...]:
                      f"visual_seeds · dynamics_seeds = {cfg.visual_seeds * cfg.dynamics_seeds}")
   check_quality(cfg.quality)
   loop.check_renderer(cfg.renderer, cfg.quality, cfg.workers)
+  if cfg.workers is not None:
+    positive_int("workers", cfg.workers)
   valid = conditions_for(task)
   conditions = valid if cfg.conditions is None else tuple(cfg.conditions)
   bad = [c for c in conditions if c not in valid]
@@ -186,17 +188,19 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
     progress: show a progress bar.
 
   Returns:
-    The results (also in `<out_dir>/eval.json`): per agent the train return,
-    every condition's mean, std and per-episode returns, E_G per condition,
-    and the wall time.
+    The results (also in `<out_dir>/eval.json`, where an undefined E_G, NaN
+    here, is null): per agent the train return, every condition's mean, std and
+    per-episode returns, E_G per condition, and the wall time.
+
+  Raises:
+    FileNotFoundError: no config.json or no checkpoint in `run_dir`.
+    ValueError: a bad `cfg` or agent index (before anything is loaded).
   """
   import dmcr_jax
+  conditions = check_eval_config(cfg, check_run(run_dir, agents).task)
   train_cfg, stacked, step = loop.load_run(run_dir)
-  conditions = check_eval_config(cfg, train_cfg.task)
   specs = train_cfg.agents()
   chosen = list(range(len(specs))) if agents is None else list(agents)
-  if not chosen or any(not 0 <= a < len(specs) for a in chosen):
-    raise ValueError(f"agents must be indices in [0, {len(specs)}), got {agents!r}")
   out_dir = out_dir or os.path.join(run_dir, "eval")
   os.makedirs(out_dir, exist_ok=True)
   test_seeds = held_out_seeds(cfg.visual_seeds, cfg.seed)
@@ -266,7 +270,7 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
                  wall_s=time.perf_counter() - t_start)
   summary["mean"] = _mean_row(results, conditions)
   with open(os.path.join(out_dir, "eval.json"), "w") as f:
-    json.dump(summary, f, indent=1)
+    json.dump(loop.json_safe(summary), f, indent=1, allow_nan=False)  # NaN E_G → null
   with open(os.path.join(out_dir, "eval.md"), "w") as f:
     f.write(markdown(summary))
   plot(summary, os.path.join(out_dir, "eval.png"))
@@ -373,25 +377,60 @@ def plot(summary: dict, png_path: str) -> None:
   plt.close(fig)
 
 
+def checkpoint_steps(run_dir: str) -> list[int]:
+  """The steps of the checkpoints in `<run_dir>/checkpoints` (read from the folder
+  names, without starting orbax)."""
+  ckpt = os.path.join(run_dir, "checkpoints")
+  if not os.path.isdir(ckpt):
+    return []
+  return sorted(int(d) for d in os.listdir(ckpt)
+                if d.isdigit() and os.path.isdir(os.path.join(ckpt, d)))
+
+
+def check_run(run_dir: str, agents: list[int] | None) -> loop.TrainConfig:
+  """The run's config, once `run_dir` is known to hold a config and a checkpoint
+  and `agents` (None: all) are indices of its agents; else ValueError or
+  FileNotFoundError saying which."""
+  train_cfg = loop.load_config(run_dir)
+  if not checkpoint_steps(run_dir):
+    raise FileNotFoundError(f"{run_dir!r} holds a config.json but no checkpoint (in "
+                            f"{os.path.join(run_dir, 'checkpoints')}): was the run stopped "
+                            "before its first checkpoint?")
+  k = len(train_cfg.agents())
+  if agents is not None and (not agents or any(not 0 <= a < k for a in agents)):
+    raise ValueError(f"agents must be indices in [0, {k}) (the run trained {k} agent"
+                     f"{'s' if k > 1 else ''}), got {','.join(map(str, agents))}")
+  return train_cfg
+
+
 def main(argv=None) -> None:
   """`evaluate RUN_DIR [options]`."""
+  from dmcr_jax.visuals.tiled import QUALITY
+  from train.__main__ import HelpFormatter
   d = EvalConfig()
-  p = argparse.ArgumentParser(prog="evaluate", description=__doc__.splitlines()[0])
+  p = argparse.ArgumentParser(prog="evaluate", description=__doc__.splitlines()[0],
+                              formatter_class=HelpFormatter)
   p.add_argument("run_dir", help="a `train` output folder")
-  p.add_argument("--visual-seeds", type=int, default=d.visual_seeds)
-  p.add_argument("--dynamics-seeds", type=int, default=d.dynamics_seeds)
-  p.add_argument("--train-episodes", type=int, default=d.train_episodes)
-  p.add_argument("--seed", type=int, default=d.seed)
+  p.add_argument("--visual-seeds", type=int, default=d.visual_seeds,
+                 help="held-out looks per condition")
+  p.add_argument("--dynamics-seeds", type=int, default=d.dynamics_seeds,
+                 help="initial states per look")
+  p.add_argument("--train-episodes", type=int, default=d.train_episodes,
+                 help="episodes at the training look")
+  p.add_argument("--seed", type=int, default=d.seed,
+                 help="seeds the held-out looks and the initial states")
   p.add_argument("--conditions", default=None,
                  help="comma-separated (default: every condition that applies)")
-  p.add_argument("--agents", default=None, help="comma-separated agent indices")
-  p.add_argument("--quality", default=d.quality)
-  p.add_argument("--workers", type=int, default=None)
-  p.add_argument("--renderer", default=d.renderer,
-                 help="for the protocol: pool (MuJoCo's pixels, the default) or jax (the JAX "
-                      "ray caster); the extras render with the pool")
+  p.add_argument("--agents", default=None, help="comma-separated agent indices (default: all)")
+  p.add_argument("--quality", default=d.quality, metavar="{" + ",".join(QUALITY) + "}",
+                 help="render preset (--renderer pool)")
+  p.add_argument("--workers", type=int, default=None,
+                 help="render workers (default: one per core, at most 16)")
+  p.add_argument("--renderer", default=d.renderer, metavar="{" + ",".join(loop.RENDERERS) + "}",
+                 help="for the protocol: pool (MuJoCo's pixels) or jax (the JAX ray caster); "
+                      "the extras render with the pool")
   p.add_argument("--out", default=None, help="default: RUN_DIR/eval")
-  p.add_argument("--no-progress", action="store_true")
+  p.add_argument("--no-progress", action="store_true", help="no progress bar")
   p.add_argument("--invariance", action="store_true",
                  help="also the encoder-invariance plot (paper Fig. 5) of the first agent")
   p.add_argument("--attention", action="store_true",
@@ -406,8 +445,11 @@ def main(argv=None) -> None:
                      train_episodes=a.train_episodes, seed=a.seed, quality=a.quality,
                      workers=a.workers, renderer=a.renderer,
                      conditions=tuple(a.conditions.split(",")) if a.conditions else None)
-    agents = [int(x) for x in a.agents.split(",")] if a.agents else None
-    task = loop.load_config(a.run_dir).task
+    try:
+      agents = [int(x) for x in a.agents.split(",")] if a.agents else None
+    except ValueError:
+      raise ValueError(f"--agents takes comma-separated agent indices, got {a.agents!r}")
+    task = check_run(a.run_dir, agents).task
     if a.skip_protocol:
       from dmcr_jax.visuals.tiled import check_quality
       check_quality(cfg.quality)
@@ -417,20 +459,24 @@ def main(argv=None) -> None:
   except (ValueError, FileNotFoundError) as e:
     p.error(str(e))
   out = a.out or os.path.join(a.run_dir, "eval")
-  if not a.skip_protocol:
-    summary = evaluate(a.run_dir, cfg, out_dir=out, agents=agents,
-                       progress=not a.no_progress)
-    print(markdown(summary))
-  from train import analysis
-  first = (agents or [0])[0]
-  extra = dict(seed=cfg.seed, quality=cfg.quality, workers=cfg.workers)
-  if a.invariance:
-    analysis.encoder_invariance(a.run_dir, out, agent=first, looks=cfg.visual_seeds, **extra)
-    print(f"wrote {out}/invariance.png and invariance.json")
-  if a.attention:
-    print("wrote", analysis.attention_maps(a.run_dir, out, agent=first, **extra))
-  if a.video:
-    print("wrote", analysis.episode_video(a.run_dir, out, agent=first, **extra))
+  try:
+    if not a.skip_protocol:
+      summary = evaluate(a.run_dir, cfg, out_dir=out, agents=agents,
+                         progress=not a.no_progress)
+      print(markdown(summary))
+    from train import analysis
+    first = (agents or [0])[0]
+    extra = dict(seed=cfg.seed, quality=cfg.quality, workers=cfg.workers)
+    if a.invariance:
+      analysis.encoder_invariance(a.run_dir, out, agent=first, looks=cfg.visual_seeds,
+                                  **extra)
+      print(f"wrote {out}/invariance.png and invariance.json")
+    if a.attention:
+      print("wrote", analysis.attention_maps(a.run_dir, out, agent=first, **extra))
+    if a.video:
+      print("wrote", analysis.episode_video(a.run_dir, out, agent=first, **extra))
+  except (ValueError, FileNotFoundError) as e:
+    sys.exit(f"evaluate: error: {e}")
 
 
 if __name__ == "__main__":

@@ -51,6 +51,7 @@ import functools
 import json
 import os
 import signal
+import sys
 import time
 from typing import Any
 
@@ -74,6 +75,10 @@ PHYSICS = ("auto", "cpu", "device")
 learner's device."""
 CPU_PHYSICS_MAX_ENVS = 64
 """The largest K·N whose physics "auto" steps on the host CPU."""
+RESUMABLE = ("steps", "checkpoint_every", "log_every", "workers")
+"""`TrainConfig` fields a resumed run may change (a larger `steps` extends it; the
+others change neither the agents nor the data); `out_dir` may name the folder
+differently. Every other field must equal the run's config.json."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -155,14 +160,23 @@ class TrainConfig:
 
 
 def parse_visual_seeds(value) -> Any:
-  """`TrainConfig.visual_seeds` → what `dmcr_jax.make` takes."""
+  """`TrainConfig.visual_seeds` → what `dmcr_jax.make` takes (checked: a seed in
+  [0, 2**31 − 1], or levels:<n> with n ≥ 1)."""
   from dmcr_jax.visuals.levels import levels
-  if isinstance(value, str) and value.startswith("levels:"):
-    return levels(int(value.split(":", 1)[1]))
+  from dmcr_jax.visuals.params import check_seeds
+  want = "an int in [0, 2**31 − 1] (a fixed look) or 'levels:<n>' with n ≥ 1 (few-shot)"
   try:
-    return int(value)
+    if isinstance(value, str) and value.startswith("levels:"):
+      n = int(value.split(":", 1)[1])
+      positive_int("levels", n)
+      return levels(n)
+    if isinstance(value, bool) or isinstance(value, float):
+      raise ValueError
+    seed = int(value)
+    check_seeds(seed)
+    return seed
   except (TypeError, ValueError):
-    raise ValueError(f"visual_seeds must be an int or 'levels:<n>', got {value!r}") from None
+    raise ValueError(f"visual_seeds must be {want}, got {value!r}") from None
 
 
 def check_renderer(renderer: str, quality: str, workers: int | None) -> None:
@@ -178,17 +192,21 @@ def check_renderer(renderer: str, quality: str, workers: int | None) -> None:
 def check_config(cfg: TrainConfig) -> None:
   """Raises ValueError naming the problem (before anything is compiled)."""
   from dmcr_jax import models
-  from dmcr_jax.visuals.factors import active_factors
+  from dmcr_jax.visuals.factors import check_vary
   from dmcr_jax.visuals.tiled import check_quality
   domain, _ = models.split_name(cfg.task)
-  active_factors(domain, cfg.vary)
+  check_vary(domain, cfg.vary)
   check_quality(cfg.quality)
   parse_visual_seeds(cfg.visual_seeds)
   for name in ("steps", "num_envs", "buffer_capacity", "image_size", "frame_stack",
                "log_every"):
     positive_int(name, getattr(cfg, name))
-  if not cfg.seeds or len(set(cfg.seeds)) != len(cfg.seeds):
-    raise ValueError(f"seeds must be distinct ints, got {cfg.seeds!r}")
+  if (not cfg.seeds or len(set(cfg.seeds)) != len(cfg.seeds)
+      or any(isinstance(s, bool) or not isinstance(s, (int, np.integer))
+             or not 0 <= s < 2**31 for s in cfg.seeds)):
+    raise ValueError(f"seeds must be distinct ints in [0, 2**31), got {cfg.seeds!r}")
+  if cfg.workers is not None:
+    positive_int("workers", cfg.workers)
   if cfg.warmup_steps < 0 or cfg.checkpoint_every < 0:
     raise ValueError("warmup_steps and checkpoint_every must be >= 0")
   if not cfg.utd > 0:
@@ -216,6 +234,19 @@ def check_config(cfg: TrainConfig) -> None:
     raise ValueError(f"CURL crops {cfg.sac.curl_crop}-pixel windows: image_size must be "
                      f"> curl_crop ({cfg.sac.curl_crop}; CURL renders "
                      f"{cfg.sac.curl_crop + 16}), got {cfg.image_size}")
+
+
+def check_resume(saved: TrainConfig, cfg: TrainConfig) -> None:
+  """ValueError naming the fields in which `cfg` differs from the run's `saved`
+  config, other than those in `RESUMABLE` (and `out_dir`)."""
+  old, new = dataclasses.asdict(saved), dataclasses.asdict(cfg)
+  differ = [k for k in old if k not in RESUMABLE + ("out_dir",) and old[k] != new[k]]
+  if differ:
+    raise ValueError(
+        f"resume: the config differs from the run's config.json in {cfg.out_dir} in "
+        + ", ".join(f"{k} ({new[k]!r}, the run has {old[k]!r})" for k in differ)
+        + f"; a resumed run keeps its settings (only {', '.join(RESUMABLE)} may change): "
+        "use `train.loop.load_config(out_dir)`, or start a new run in another out_dir")
 
 
 # Devices ----------------------------------------------------------------------------
@@ -335,17 +366,33 @@ def load_run(out_dir: str, step: int | None = None):
 def open_run(cfg: TrainConfig, resume: bool):
   """Checks `cfg`, creates `out_dir` and writes config.json; the checkpoint manager.
 
+  With `resume`, `cfg` must match the run's config.json but for `RESUMABLE`
+  fields (`check_resume`; changed ones are written back). Nothing is created or
+  written before every check has passed.
+
   Raises:
-    ValueError: a bad config.
+    ValueError: a bad config, or a resumed one that differs from the run's.
     FileExistsError: `out_dir` already holds checkpoints and `resume` is False.
+    FileNotFoundError: `resume` and no run (config.json and a checkpoint) in `out_dir`.
   """
   check_config(cfg)
-  os.makedirs(cfg.out_dir, exist_ok=True)
-  manager = _checkpointer(cfg.out_dir)
-  if not resume and manager.latest_step() is not None:
-    raise FileExistsError(f"{cfg.out_dir}/checkpoints already holds a run (step "
-                          f"{manager.latest_step()}): pass resume=True (--resume) to "
-                          "continue it, or choose another out_dir (--out)")
+  if resume:
+    if not os.path.exists(os.path.join(cfg.out_dir, "config.json")):
+      raise FileNotFoundError(f"--resume: no run in {cfg.out_dir!r} (no config.json); "
+                              "check the folder (--out)")
+    check_resume(load_config(cfg.out_dir), cfg)
+    if (not os.path.isdir(os.path.join(cfg.out_dir, "checkpoints"))
+        or _checkpointer(cfg.out_dir).latest_step() is None):
+      raise FileNotFoundError(f"--resume: no checkpoint in {cfg.out_dir}/checkpoints")
+    manager = _checkpointer(cfg.out_dir)
+  else:
+    ckpt = os.path.join(cfg.out_dir, "checkpoints")
+    if os.path.isdir(ckpt) and _checkpointer(cfg.out_dir).latest_step() is not None:
+      raise FileExistsError(f"{ckpt} already holds a run (step "
+                            f"{_checkpointer(cfg.out_dir).latest_step()}): pass resume=True "
+                            "(--resume) to continue it, or choose another out_dir (--out)")
+    os.makedirs(cfg.out_dir, exist_ok=True)
+    manager = _checkpointer(cfg.out_dir)
   save_config(cfg, cfg.out_dir)
   return manager
 
@@ -374,13 +421,31 @@ def initial_state(cfg: TrainConfig, manager, resume: bool, obs_shape, action_siz
   return agents, buffers, key, start
 
 
+PROGRESS_FRACTION = 0.02
+"""`RunLog.due` reports progress at least every this fraction of a run's steps,
+whatever `log_every` says (a CPU run of 600 steps with log_every 1,000 showed
+nothing until its end)."""
+
+
+def progress_every(cfg: TrainConfig) -> int:
+  """Steps between progress reports: `log_every`, at most `PROGRESS_FRACTION` of
+  the run (at least 1)."""
+  return max(1, min(cfg.log_every, int(cfg.steps * PROGRESS_FRACTION)))
+
+
 class RunLog:
   """A run's host side between steps (or chunks): the episode log (log.csv), the
-  progress bar, and the stop flag that SIGINT/SIGTERM set (the handlers are
-  restored by `close`)."""
+  progress bar (or, without one, progress lines on stderr), and the stop flag that
+  SIGINT/SIGTERM set (the handlers are restored by `close`).
+
+  A finished episode's row is flushed at once and moves the bar; `due` says when
+  the loop should call `progress` (every `every` steps). Creating a RunLog
+  announces the compilation that the loop's first steps trigger."""
 
   def __init__(self, cfg: TrainConfig, start: int, resume: bool, progress: bool):
     self.cfg, self.specs, self.start = cfg, cfg.agents(), start
+    self.every = progress_every(cfg)
+    self._last_line = None
     self.stop = {"signal": None}
     self._previous = {s: signal.signal(s, lambda sig, _: self.stop.update(signal=sig))
                       for s in (signal.SIGINT, signal.SIGTERM)}
@@ -395,6 +460,9 @@ class RunLog:
     if new_log:
       self._writer.writeheader()
     self._bar = None
+    print(f"{cfg.task}: compiling the agents' act and update steps on the first steps "
+          f"({jax.default_backend()}); this can take a minute or more on a CPU",
+          file=sys.stderr, flush=True)
     if progress:
       from tqdm.auto import tqdm
       self._bar = tqdm(total=cfg.steps, initial=start, desc=cfg.task, unit="step")
@@ -421,15 +489,30 @@ class RunLog:
       if f in metrics and np.isfinite(np.mean(metrics[f][agent])):
         row[f] = float(np.mean(metrics[f][agent]))
     self._writer.writerow(row)
+    self._file.flush()
+    if self._bar is not None and step > self._bar.n:
+      self._bar.update(min(step, self.cfg.steps) - self._bar.n)
+
+  def due(self, before: int, step: int) -> bool:
+    """Whether the loop should call `progress` after moving from `before` to `step`:
+    every `every` steps (`log_every`, at most 2 % of the run) and at the end."""
+    return crossed(self.every, before, step) or step >= self.cfg.steps
 
   def progress(self, step: int) -> None:
-    """Flushes the log and moves the progress bar to `step`."""
+    """Flushes the log and moves the progress bar to `step` (without a bar: prints
+    a progress line to stderr)."""
     self._file.flush()
+    sps = (step - self.start) * len(self.specs) / max(self.wall(), 1e-9)
+    ret = f"{np.mean(self.recent[-10 * len(self.specs):]):.1f}" if self.recent else None
     if self._bar is not None:
       self._bar.update(min(step, self.cfg.steps) - self._bar.n)
-      if self.recent:
-        self._bar.set_postfix(ret=f"{np.mean(self.recent[-10 * len(self.specs):]):.1f}",
-                              sps=f"{(step - self.start) * len(self.specs) / self.wall():.0f}")
+      self._bar.set_postfix(**({"ret": ret} if ret else {}), sps=f"{sps:.1f}")
+    elif step != self._last_line:
+      print(f"{self.cfg.task}: step {min(step, self.cfg.steps):,}/{self.cfg.steps:,} "
+            f"({100 * min(step, self.cfg.steps) / self.cfg.steps:.0f} %), "
+            f"{sps:.1f} transitions/s, {self.wall():.0f} s"
+            + (f", recent return {ret}" if ret else ""), file=sys.stderr, flush=True)
+    self._last_line = step
 
   def close(self) -> None:
     for s, handler in self._previous.items():
@@ -437,6 +520,18 @@ class RunLog:
     self._file.close()
     if self._bar is not None:
       self._bar.close()
+
+
+def json_safe(tree):
+  """`tree` (dicts, lists, numbers) with NaN and ±inf replaced by None, so that
+  `json.dump(..., allow_nan=False)` writes valid JSON (null)."""
+  if isinstance(tree, dict):
+    return {k: json_safe(v) for k, v in tree.items()}
+  if isinstance(tree, (list, tuple)):
+    return [json_safe(v) for v in tree]
+  if isinstance(tree, float) and not np.isfinite(tree):
+    return None
+  return tree
 
 
 def finish(cfg: TrainConfig, step: int, log: RunLog) -> dict:
@@ -448,7 +543,7 @@ def finish(cfg: TrainConfig, step: int, log: RunLog) -> dict:
                  final_return=plot_learning_curve(log.path, os.path.join(
                      cfg.out_dir, "learning_curve.png"), specs))
   with open(os.path.join(cfg.out_dir, "summary.json"), "w") as f:
-    json.dump(summary, f, indent=1)
+    json.dump(json_safe(summary), f, indent=1, allow_nan=False)
   return summary
 
 
@@ -555,7 +650,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
         metrics = jax.device_get(learner.metrics) if truncated.any() else {}
         for i in np.flatnonzero(truncated):
           log.episode(step, int(i // n), float(info["episode_return"][i]), wall, metrics)
-        if crossed(cfg.log_every, before, step) or step >= cfg.steps:
+        if log.due(before, step):
           log.progress(step)
         if crossed(cfg.checkpoint_every, before, step):
           _save(manager, step, learner.agents, learner.key)
@@ -603,7 +698,8 @@ def plot_learning_curve(log_path: str, png_path: str, specs) -> dict:
       steps = sorted(by_step)
       means = [float(np.mean(by_step[t])) for t in steps]
       label = agent_label(seed, aug, augs)
-      ax.plot(steps, means, label=label)
+      # Markers: a run with one finished episode per agent still shows its point.
+      ax.plot(steps, means, marker="o", ms=4, label=label)
       last[label] = means[-1]
   ax.set_xlabel("training step (transitions per agent)")
   ax.set_ylabel("episode return")

@@ -120,3 +120,23 @@ def active_factors(domain: str, vary: str | Iterable[str] | None) -> frozenset[s
     The factors that will actually vary for this domain.
   """
   return parse_vary(vary) & APPLICABLE[check_domain(domain)]
+
+
+def check_vary(domain: str, vary: str | Iterable[str] | None) -> frozenset[str]:
+  """`active_factors` for a `vary` a user passes (`make`, `set_visuals`, `train`):
+  an empty string and named factors that do not apply to `domain` are refused.
+
+  Raises:
+    ValueError: naming the problem and the domain's factors.
+  """
+  domain = check_domain(domain)
+  own = ", ".join(f for f in FACTORS if f in APPLICABLE[domain])
+  if isinstance(vary, str) and not vary.strip():
+    raise ValueError(f"vary is empty: pass 'none' (dm_control's look), 'all' or factor "
+                     f"names; {domain}'s factors: {own}")
+  requested = parse_vary(vary)
+  missing = [f for f in FACTORS if f in requested - APPLICABLE[domain]]
+  if missing and requested != frozenset(FACTORS):
+    raise ValueError(f"vary: {', '.join(missing)} do(es) not apply to {domain} (the "
+                     f"paper's Table 5); {domain}'s factors: {own} (or 'all' / 'none')")
+  return requested & APPLICABLE[domain]

@@ -86,6 +86,24 @@ def _main_module_hidden():
     main.__dict__.update(saved)
 
 
+@contextlib.contextmanager
+def _environ(env: Mapping[str, str]):
+  """`os.environ` updated with `env` while a worker is launched, so the spawned
+  interpreter starts with them: MuJoCo and PyOpenGL pick their GL platform once, at
+  import, and unpickling the worker's arguments imports them before
+  `_worker_main` runs."""
+  saved = {k: os.environ.get(k) for k in env}
+  os.environ.update(env)
+  try:
+    yield
+  finally:
+    for k, v in saved.items():
+      if v is None:
+        os.environ.pop(k, None)
+      else:
+        os.environ[k] = v
+
+
 def _worker_main(conn, factory, factory_args, in_names, in_specs, out_names, out_spec,
                  batch, env):
   """Entry point of a worker process: build the renderer, then serve calls.
@@ -207,7 +225,7 @@ class WorkerPool:
         target=_worker_main, daemon=True, name=f"dmcr-render-{w}",
         args=(child, self._factory, self._factory_args, self._in_names, self._in_specs,
               self._out_names, self._out_spec, self.max_batch, self._env))
-    with _main_module_hidden():
+    with _main_module_hidden(), _environ(self._env):
       proc.start()
     child.close()
     self._procs[w], self._conns[w] = proc, parent

@@ -18,15 +18,19 @@ the new frame k times where `restart` is set). Reading only the previous buffer
 keeps a re-rendered slice correct after a fault, and the stacking, a copy with
 3-byte runs, is spread over the workers instead of the caller.
 
-GL backend: `gl=None` takes `MUJOCO_GL` when set, else EGL when an NVIDIA device
-is present and OSMesa otherwise; pass "egl" or "osmesa" to choose.
+GL backend: `gl=None` takes `MUJOCO_GL` when it names one of `GL_BACKENDS`, else
+EGL (`import dmcr_jax` sets `MUJOCO_GL=egl` on a machine without a display, so
+that is the usual default, with or without a GPU: Mesa's EGL renders on the
+CPU). `gl="osmesa"` needs the OSMesa library (Debian: libosmesa6); the workers
+start with `MUJOCO_GL`/`PYOPENGL_PLATFORM` set to the chosen backend, so no
+environment variable is needed in the caller's shell.
 """
 
 from __future__ import annotations
 
 import copy
+import ctypes.util
 import dataclasses
-import glob
 import os
 from typing import Any, Mapping
 
@@ -47,10 +51,19 @@ _OBJ = {"geom": mujoco.mjtObj.mjOBJ_GEOM, "site": mujoco.mjtObj.mjOBJ_SITE,
 
 def default_gl() -> str:
   """The GL backend workers use by default (see the module docstring)."""
-  env = os.environ.get("MUJOCO_GL")
-  if env:
-    return env
-  return "egl" if glob.glob("/dev/nvidia[0-9]*") else "osmesa"
+  env = os.environ.get("MUJOCO_GL", "").lower()
+  return env if env in GL_BACKENDS else "egl"
+
+
+def check_gl(gl: str) -> str:
+  """`gl` if it is one of `GL_BACKENDS` and its library can be loaded, else ValueError."""
+  if gl not in GL_BACKENDS:
+    raise ValueError(f"Unknown GL backend {gl!r}; valid: {', '.join(GL_BACKENDS)}.")
+  if gl == "osmesa" and ctypes.util.find_library("OSMesa") is None:
+    raise ValueError("gl='osmesa' needs the OSMesa library, which is not installed "
+                     "(Debian/Ubuntu: apt-get install libosmesa6); gl='egl' renders "
+                     "without it")
+  return gl
 
 
 def default_workers() -> int:
@@ -153,7 +166,7 @@ class RenderPool:
     camera: camera id or name (the looks move camera 0).
     workers: number of processes (default: `default_workers()`).
     quality: render preset, a key of `tiled.QUALITY` ("exact" = dm_control's).
-    gl: "egl" or "osmesa" (default: `default_gl()`).
+    gl: "egl" or "osmesa" (default: `default_gl()`; see the module docstring).
     tiles: frames per readback in each worker (default: fill a 2048² buffer).
     timeout: seconds a worker may take for its slice before it is replaced.
     frame_stack: k > 1 makes `render` return stacked observations
@@ -173,9 +186,7 @@ class RenderPool:
     else:
       domain = rmod.check_domain(task)
       variables = ()
-    gl = default_gl() if gl is None else gl
-    if gl not in GL_BACKENDS:
-      raise ValueError(f"Unknown GL backend {gl!r}; valid: {', '.join(GL_BACKENDS)}.")
+    gl = check_gl(default_gl() if gl is None else gl)
     check_quality(quality)
     if int(height) < 1 or int(width) < 1:
       raise ValueError(f"frame size must be positive, got {height}x{width}")

@@ -5,8 +5,8 @@
 renders camera 0 of the task's initial state (dm_control's own reset with a
 fixed dynamics seed, so every tile shows the same state) once per visual seed
 and writes the tiles, row by row in seed order, to one PNG. Uses the reference
-renderer (`render_model.FrameRenderer`); set MUJOCO_GL=egl (default here) or
-osmesa for headless machines.
+renderer (`render_model.FrameRenderer`) with MuJoCo's GL backend: EGL unless
+`MUJOCO_GL` says otherwise (`import dmcr_jax` picks EGL without a display).
 """
 
 from __future__ import annotations

@@ -1,0 +1,92 @@
+"""The commands as a user meets them: clean stdout, help with defaults, one-paragraph
+errors that end the process (run in subprocesses with a timeout)."""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+pytestmark = pytest.mark.xdist_group("cli")
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def run(args, timeout=240, **env):
+  """`python args…` from the repository root; (returncode, stdout, stderr)."""
+  out = subprocess.run([sys.executable] + list(args), capture_output=True, text=True,
+                       timeout=timeout, cwd=ROOT,
+                       env=dict(os.environ, JAX_PLATFORMS="cpu", **env))
+  return out.returncode, out.stdout, out.stderr
+
+
+def test_importing_the_package_prints_nothing_to_stdout():
+  # mujoco-mjx prints "Failed to import warp: …" to stdout when warp is absent.
+  code, stdout, stderr = run(["-c", "import dmcr_jax, train.loop"])
+  assert code == 0, stderr[-2000:]
+  assert stdout == ""
+  assert "warp" not in stderr
+
+
+@pytest.fixture(scope="module")
+def run_without_checkpoint(tmp_path_factory):
+  """A `train` folder with config.json (two agents) and no checkpoint yet."""
+  from train import loop
+  out = str(tmp_path_factory.mktemp("run"))
+  loop.save_config(loop.TrainConfig(task="cartpole-balance", seeds=(0, 1), out_dir=out), out)
+  return out
+
+
+def assert_clean_error(code, stderr, prog, match):
+  """Exit status 2 or 1, one error paragraph naming `match`, no traceback or noise."""
+  assert code in (1, 2), stderr[-2000:]
+  assert match in stderr, stderr[-2000:]
+  assert f"{prog}: error:" in stderr
+  for noise in ("Traceback", "Event loop is closed", "sys.meta_path", "warp"):
+    assert noise not in stderr, stderr[-2000:]
+
+
+def test_evaluate_without_a_checkpoint_fails_cleanly_and_exits(run_without_checkpoint):
+  # It printed a FileNotFoundError inside 250-430 lines of noise and at times never exited.
+  code, stdout, stderr = run(["-m", "train.evaluate", run_without_checkpoint], timeout=120)
+  assert_clean_error(code, stderr, "evaluate", "no checkpoint")
+  assert stdout == ""
+  assert not os.path.exists(os.path.join(run_without_checkpoint, "eval"))
+
+
+def test_evaluate_refuses_agents_out_of_range(run_without_checkpoint):
+  os.makedirs(os.path.join(run_without_checkpoint, "checkpoints", "5"), exist_ok=True)
+  try:
+    code, _, stderr = run(["-m", "train.evaluate", run_without_checkpoint, "--agents", "3"],
+                          timeout=120)
+  finally:
+    os.rmdir(os.path.join(run_without_checkpoint, "checkpoints", "5"))
+  assert_clean_error(code, stderr, "evaluate", "agents must be indices in [0, 2)")
+
+
+def test_train_refuses_bad_arguments_before_creating_the_folder(tmp_path):
+  out = str(tmp_path / "run")
+  for args, match in ((["--visual-seeds", "-1"], "visual_seeds must be"),
+                      (["--resume"], "no run in")):
+    code, _, stderr = run(["-m", "train", "--out", out, "--steps", "10"] + args, timeout=120)
+    assert_clean_error(code, stderr, "train", match)
+    assert not os.path.exists(out)
+
+
+def test_help_shows_defaults_and_choices():
+  code, stdout, stderr = run(["-m", "train", "--help"], timeout=120)
+  assert code == 0, stderr[-2000:]
+  text = " ".join(stdout.split())
+  for want in ("--steps STEPS training steps (transitions) per agent",
+               "(default: 50000)", "(default: 0)", "(default: 10000)", "(default: 1000)",
+               "--renderer {pool,jax}", "--quality {exact,fast,fastest}",
+               "--dtype {float32,bfloat16}", "--agent-loop {vmap,map}"):
+    assert want in text, want
+  assert "warp" not in stdout
+  code, stdout, stderr = run(["-m", "train.evaluate", "--help"], timeout=120)
+  assert code == 0, stderr[-2000:]
+  text = " ".join(stdout.split())
+  for want in ("held-out looks per condition (default: 100)", "--renderer {pool,jax}",
+               "(default: 3)"):
+    assert want in text, want
