@@ -17,13 +17,16 @@ as a PyTorch-style loop does.
 Compile time and run time are reported apart; the run time is the median of
 several calls (each ended by ``block_until_ready``) over at least ``--seconds``.
 Rows go to ``--out`` (JSON lines, appended) and a Markdown table beside it.
+``--stage-inputs on,off`` adds a row per value of `sac.SACConfig.stage_inputs` (an
+A/B of how the encoders' inputs are computed; "unstaged" in the agent-loop column).
 ``--cost`` instead prints XLA's cost analysis of one update (GFLOP and GB accessed,
 from the compiled module; nothing runs), which turns updates/s into FLOP/s.
 
 Usage::
 
     python -m benchmarks.learner [--agents 1,8] [--dtypes float32,bfloat16] \\
-        [--loops vmap,map] [--algos sac_aug,curl,sac_ae] [--augs drq,cj+drq] [--batch 256] [--pairs 25] [--out PATH]
+        [--loops vmap,map] [--algos sac_aug,curl,sac_ae] [--augs drq,cj+drq] [--batch 256] \\
+        [--pairs 25] [--stage-inputs on,off] [--out PATH]
 """
 
 from __future__ import annotations
@@ -82,12 +85,14 @@ def _timed(call, state, seconds: float, min_reps: int = 3):
 def scanned_workload(k: int = 1, dtype: str = "float32", agent_loop: str = "vmap",
                      batch: int | None = None, pairs: int = 25, size: int = 84,
                      stack: int = 3, action_size: int = 6, capacity: int = 10_000,
-                     algo: str = "sac_aug", aug: str | None = None):
+                     algo: str = "sac_aug", aug: str | None = None,
+                     stage_inputs: bool = True):
   """`train.step.learn_jit` for K agents on full random buffers, ready to call repeatedly.
 
   `batch` None takes the algorithm's default; for CURL the frames are rendered
   ``curl_crop + 16`` pixels (`size` is the encoder's input). `aug` None takes
-  the algorithm's default augmentation (SAC+AUG: DrQ).
+  the algorithm's default augmentation (SAC+AUG: DrQ). `stage_inputs` is
+  `sac.SACConfig.stage_inputs`.
 
   Returns:
     (call, config, frame side): ``call()`` runs `pairs` update pairs of every
@@ -95,7 +100,7 @@ def scanned_workload(k: int = 1, dtype: str = "float32", agent_loop: str = "vmap
     update donates them) and returns the new agents; the first call compiles.
   """
   config = sac.SACConfig(algo=algo, batch_size=batch, compute_dtype=dtype,
-                         **({"aug": aug} if aug else {}),
+                         stage_inputs=stage_inputs, **({"aug": aug} if aug else {}),
                          **({"curl_crop": size} if algo == "curl" else {}))
   if algo == "curl":
     size = size + 16
@@ -120,10 +125,11 @@ def scanned_workload(k: int = 1, dtype: str = "float32", agent_loop: str = "vmap
 
 def bench_scanned(k: int, dtype: str, agent_loop: str, batch: int | None, pairs: int,
                   size: int, stack: int, action_size: int, capacity: int, seconds: float,
-                  algo: str = "sac_aug", aug: str | None = None) -> dict:
+                  algo: str = "sac_aug", aug: str | None = None,
+                  stage_inputs: bool = True) -> dict:
   """Updates/s of `train.step.learn_jit` for K agents (`scanned_workload`); one result row."""
   call, config, size = scanned_workload(k, dtype, agent_loop, batch, pairs, size, stack,
-                                        action_size, capacity, algo, aug)
+                                        action_size, capacity, algo, aug, stage_inputs)
   t0 = time.perf_counter()
   jax.block_until_ready(call())  # compiles
   compile_s = time.perf_counter() - t0
@@ -132,7 +138,8 @@ def bench_scanned(k: int, dtype: str, agent_loop: str, batch: int | None, pairs:
   times, _ = _timed(step, None, seconds)
   per_call = float(np.median(times))
   updates = 2 * pairs
-  return dict(kind="scanned", algo=algo, aug=",".join(config.aug_names) or "-", agents=k, dtype=dtype, agent_loop=agent_loop,
+  return dict(kind="scanned", algo=algo, aug=",".join(config.aug_names) or "-", agents=k,
+              dtype=dtype, agent_loop=agent_loop, stage_inputs=stage_inputs,
               batch=config.batch_size, frame_side=size,
               pairs_per_call=pairs, compile_s=round(compile_s, 2), reps=int(times.size),
               ms_per_call=round(per_call * 1e3, 3),
@@ -192,7 +199,7 @@ def markdown(rows: list[dict]) -> str:
         f"{r.get('aug', 'drq' if r.get('algo', 'sac_aug') == 'sac_aug' else '-')} | "
         f"{r['agents']} | "
         f"{r['dtype']} | "
-        f"{r['agent_loop']} | {r['batch']} | {2 * r['pairs_per_call'] or 1} | "
+        f"{r['agent_loop']}{'' if r.get('stage_inputs', True) else ', unstaged'} | {r['batch']} | {2 * r['pairs_per_call'] or 1} | "
         f"{r['compile_s']:.1f} | {r['ms_per_call']:.1f} | "
         f"{r['updates_per_s_per_agent']:,.0f} | {r['agent_updates_per_s']:,.0f} | "
         f"{'' if ratio is None else f'{ratio:.1f}'} | {r['time_utc'][11:16]} |")
@@ -233,6 +240,8 @@ def main(argv=None) -> None:
   p.add_argument("--capacity", type=int, default=10_000, help="buffer rows per agent")
   p.add_argument("--seconds", type=float, default=3.0)
   p.add_argument("--no-baseline", action="store_true")
+  p.add_argument("--stage-inputs", default="on",
+                 help="comma-separated on/off: sac.SACConfig.stage_inputs, a row each")
   p.add_argument("--cost", action="store_true",
                  help="only print XLA's cost analysis (GFLOP and GB per update) of each "
                       "algorithm and dtype, one JSON line each, and stop (nothing is timed "
@@ -252,6 +261,11 @@ def main(argv=None) -> None:
   for name in a.algos.split(","):
     if name not in sac.ALGOS:
       p.error(f"--algos: {name!r} is not one of {', '.join(sac.ALGOS)}")
+  stages = []
+  for value in a.stage_inputs.split(","):
+    if value not in ("on", "off"):
+      p.error(f"--stage-inputs: {value!r} is not on or off")
+    stages.append(value == "on")
   for name in a.loops.split(","):
     if name not in loop.AGENT_LOOPS:
       p.error(f"--loops: {name!r} is not one of {', '.join(loop.AGENT_LOOPS)}")
@@ -280,8 +294,10 @@ def main(argv=None) -> None:
     for k in map(int, a.agents.split(",")):
       for dtype in a.dtypes.split(","):
         for agent_loop in (a.loops.split(",") if k > 1 else ["vmap"]):
-          todo.append(functools.partial(bench_scanned, k, dtype, agent_loop,
-                                        pairs=a.pairs, algo=algo, aug=aug, **shape))
+          for stage in stages:
+            todo.append(functools.partial(bench_scanned, k, dtype, agent_loop,
+                                          pairs=a.pairs, algo=algo, aug=aug,
+                                          stage_inputs=stage, **shape))
   for job in todo:
     row = dict(job(), **common)
     if row["kind"] == "python_loop":

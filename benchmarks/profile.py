@@ -17,7 +17,9 @@ The command profiles the two workloads the open speed targets are about:
     python -m benchmarks.profile learner --dtype bfloat16 --out $OUT/prof
 
 Each writes ``summary.md`` (the top `--top` rows) and ``summary.json`` into --out
-beside the raw trace, and prints the table. Why its own tool: GPU time is scarce
+beside the raw trace, and prints the table. ``--trace-dir`` puts the trace
+elsewhere; ``--no-keep-trace`` deletes it once summarised, leaving only the two
+summary files under --out. Why its own tool: GPU time is scarce
 here, and a table of kernels is what decides the next optimisation; the trace
 viewers (TensorBoard, Perfetto UI) are not on the GPU machine. XLA's CUDA command
 buffers are turned off for the run (`--command-buffers` keeps them): with them a
@@ -33,7 +35,9 @@ import gzip
 import json
 import os
 import re
+import shutil
 import sys
+import tempfile
 import time
 from typing import Any, Callable, Sequence
 
@@ -226,13 +230,22 @@ def main(argv=None) -> None:
   p.add_argument("--command-buffers", action="store_true",
                  help="keep XLA's CUDA command buffers (graphs) on; off by default, as "
                       "a trace then shows each graph as one kernel (command_buffer_N)")
-  p.add_argument("--out", required=True, help="folder for the trace and summary.{md,json}")
+  p.add_argument("--stage-inputs", action=argparse.BooleanOptionalAction, default=True,
+                 help="learner: sac.SACConfig.stage_inputs")
+  p.add_argument("--out", required=True, help="folder for summary.{md,json} (and the trace)")
+  p.add_argument("--trace-dir", default=None,
+                 help="folder for the profiler's trace (default: --out)")
+  p.add_argument("--keep-trace", action=argparse.BooleanOptionalAction, default=True,
+                 help="keep the trace; --no-keep-trace writes it to a temporary folder "
+                      "and deletes it after summarising")
   argv = sys.argv[1:] if argv is None else list(argv)
   args = p.parse_args(argv)
   for name in ("batch", "chunk", "size", "pairs", "calls", "top"):
     value = getattr(args, name)
     if value is not None and (value < 0 if name == "chunk" else value < 1):
       p.error(f"--{name} must be {'≥ 0' if name == 'chunk' else 'positive'}, got {value}")
+  if args.trace_dir and not args.keep_trace:
+    p.error("--trace-dir keeps the trace there; leave it out with --no-keep-trace")
   flags = os.environ.get("XLA_FLAGS", "")
   if not args.command_buffers and "xla_gpu_enable_command_buffer" not in flags:
     # Set before JAX starts its backend; the total device time is unchanged by it
@@ -245,19 +258,31 @@ def main(argv=None) -> None:
   else:
     from benchmarks.learner import scanned_workload
     call, _, _ = scanned_workload(dtype=args.dtype, batch=args.batch or 256,
-                                  pairs=args.pairs, size=args.size)
+                                  pairs=args.pairs, size=args.size,
+                                  stage_inputs=args.stage_inputs)
     what = (f"SAC+AUG, {args.pairs} update pairs per call, batch {args.batch or 256}, "
-            f"{args.size}×{args.size}×9, {args.dtype}")
+            f"{args.size}×{args.size}×9, {args.dtype}"
+            f"{'' if args.stage_inputs else ', inputs not staged'}")
   t0 = time.perf_counter()
   jax.block_until_ready(call())  # compiles
   compile_s = time.perf_counter() - t0
   jax.block_until_ready(call())  # warm
-  trace = profile_call(call, args.out, args.calls)
+  os.makedirs(args.out, exist_ok=True)
+  trace_dir = (args.trace_dir or args.out) if args.keep_trace else tempfile.mkdtemp()
+  try:
+    trace = profile_call(call, trace_dir, args.calls)
+    events = load_trace(trace)
+  finally:
+    if not args.keep_trace:
+      shutil.rmtree(trace_dir, ignore_errors=True)
   sources = hlo_sources(call.hlo_text()) if args.by == "source" else None
-  summary = summarise(load_trace(trace), by=args.by, top=args.top, sources=sources)
+  summary = summarise(events, by=args.by, top=args.top, sources=sources)
   device = getattr(jax.devices()[0], "device_kind", jax.default_backend())
+  kept = None
+  if args.keep_trace:
+    kept = trace if args.trace_dir else os.path.relpath(trace, args.out)
   summary.update(workload=what, device=device, calls=args.calls, compile_s=compile_s,
-                 trace=os.path.relpath(trace, args.out),
+                 trace=kept,
                  time_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
   table = markdown(summary, f"{what} on {device}, {args.calls} calls "
                             f"(`python -m benchmarks.profile {' '.join(argv)}`)")

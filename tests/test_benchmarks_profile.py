@@ -76,6 +76,21 @@ def test_command_profiles_the_renderer(tmp_path, capsys, monkeypatch):
   assert "--xla_gpu_enable_command_buffer=" in os.environ["XLA_FLAGS"]
 
 
+def test_command_can_leave_only_the_summary(tmp_path, monkeypatch):
+  monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", ""))  # restored after
+  P.main(["render", "--task", "pendulum-swingup", "--batch", "2", "--size", "16",
+          "--calls", "1", "--top", "5", "--out", str(tmp_path), "--no-keep-trace"])
+  assert sorted(os.listdir(tmp_path)) == ["summary.json", "summary.md"]
+  summary = json.loads((tmp_path / "summary.json").read_text())
+  assert summary["trace"] is None and summary["rows"]
+  elsewhere = tmp_path / "traces"
+  P.main(["render", "--task", "pendulum-swingup", "--batch", "2", "--size", "16",
+          "--calls", "1", "--out", str(tmp_path / "out"), "--trace-dir", str(elsewhere)])
+  assert sorted(os.listdir(tmp_path / "out")) == ["summary.json", "summary.md"]
+  trace = json.loads((tmp_path / "out" / "summary.json").read_text())["trace"]
+  assert trace.startswith(str(elsewhere)) and os.path.exists(trace)
+
+
 def test_command_rejects_bad_sizes(tmp_path, capsys):
   with pytest.raises(SystemExit):
     P.main(["render", "--batch", "0", "--out", str(tmp_path)])

@@ -481,3 +481,48 @@ def test_config_defaults_and_validation():
       sac.SACConfig(**bad)
   with pytest.raises(ValueError, match="update_cycle"):
     sac.update_pair(None, None, None, sac.SACConfig(update_delay=3))
+
+
+# --------------------------------------------------------------------------- #
+# The encoder's inputs prepared once (`encoder_inputs`, `Blocks`).
+# --------------------------------------------------------------------------- #
+
+
+@pytest.mark.parametrize("dtype", ["float32", "bfloat16"])
+def test_encoder_on_prepared_blocks_equals_encoder_on_pixels(agent, batch, dtype):
+  from train.networks import encoder_input
+  encoder = dataclasses.replace(agent.networks.encoder, dtype=dtype)
+  params = agent.params["encoder"]
+  blocks = encoder_input(encoder, batch.obs)
+  np.testing.assert_array_equal(encoder.apply(params, blocks),
+                                encoder.apply(params, batch.obs))
+  grad = lambda x: jax.grad(lambda p: jnp.sum(encoder.apply(p, x) ** 2))(params)
+  _assert_tree(np.testing.assert_array_equal, grad(blocks), grad(batch.obs))
+  # Initialising from blocks gives the same parameters (shapes and values).
+  _assert_tree(np.testing.assert_array_equal, encoder.init(jax.random.key(0), blocks),
+               encoder.init(jax.random.key(0), batch.obs))
+
+
+@pytest.mark.parametrize("beta,lam", [(0.9, 0.1), (1.0, 0.1), (0.0, 0.1), (0.9, 0.0)])
+def test_critic_loss_on_staged_inputs_equals_the_unstaged_one(agent, batch, beta, lam):
+  config = dataclasses.replace(CONFIG, beta=beta, lam=lam)
+  mixed, z_obs = sac.augment_and_mix(jax.random.key(5), batch, augment.get("drq"), beta)
+  params = {"encoder": agent.params["encoder"], "critic": agent.params["critic"]}
+  inputs = sac.encoder_inputs(agent.networks.encoder, batch, mixed, z_obs, config,
+                              stage=True)
+  np.testing.assert_array_equal(inputs.obs, mixed.obs)
+  run = lambda *extra: jax.jit(jax.grad(sac.critic_loss, has_aux=True),
+                               static_argnums=6)(params, agent, batch, mixed, z_obs,
+                                                 jax.random.key(7), config, *extra)
+  _assert_tree(np.testing.assert_array_equal, run(inputs), run())
+
+
+def test_update_pair_is_the_same_with_and_without_staged_inputs(agent):
+  batches = make_batch(3, leading=(2,))
+  off = dataclasses.replace(CONFIG, stage_inputs=False)
+  got = update_pair(agent, batches, jax.random.key(0), CONFIG)
+  want = update_pair(agent, batches, jax.random.key(0), off)
+  _assert_tree(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7),
+               got, want)
+  with pytest.raises(ValueError, match="stage_inputs"):
+    sac.SACConfig(stage_inputs=1)

@@ -15,7 +15,9 @@ convolutions and dense layers (parameters stay float32; LayerNorm, tanh and the
 policy's log-densities are computed in float32): "bfloat16" halves the memory
 traffic of the convolutions on GPUs (benchmarks/learner.py measures it).
 The stride-2 first convolution is computed on 2×2 pixel blocks (`StrideTwoConv`:
-the same function and parameters as `nn.Conv`, faster on GPUs).
+the same function and parameters as `nn.Conv`, faster on GPUs). `encoder_input`
+does the encoder's input work (crop, /255, 2×2 blocks) once, as `Blocks`, so that
+several passes over the same observations (online and target encoders) share it.
 `Decoder` is SAC+AE's deconvolutional decoder, the encoder mirrored back to the
 observation's size; `Encoder.input_size` center-crops larger inputs (CURL).
 """
@@ -25,6 +27,7 @@ from __future__ import annotations
 import math
 
 import flax.linen as nn
+import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -56,21 +59,20 @@ class Encoder(nn.Module):
   input_size: int | None = None
 
   @nn.compact
-  def __call__(self, obs: jax.Array) -> jax.Array:
+  def __call__(self, obs: jax.Array | Blocks) -> jax.Array:
     """Encodes a batch of observations.
 
     Args:
-      obs: uint8 (B, H, W, C), channels last (C = 3·frame stack). With
-        `input_size` set, larger images are center-cropped to it first (CURL's
-        acting and evaluation; its training crops are random and come in at
-        `input_size` already).
+      obs: uint8 (B, H, W, C), channels last (C = 3·frame stack), or the same
+        observations already prepared by `encoder_input(self, obs)` (the same
+        result). With `input_size` set, larger images are center-cropped to it
+        first (CURL's acting and evaluation; its training crops are random and
+        come in at `input_size` already).
 
     Returns:
       float32 (B, feature_dim), each entry in (−1, 1).
     """
-    if self.input_size is not None:
-      obs = center_crop(obs, self.input_size)
-    x = obs.astype(self.dtype) / 255.0
+    x = obs if isinstance(obs, Blocks) else encoder_input(self, obs)
     for i in range(self.num_layers):
       if i == 0:  # stride 2, as blocks (see StrideTwoConv)
         layer = StrideTwoConv(self.channels, kernel_init=_CONV_INIT, dtype=self.dtype,
@@ -82,6 +84,55 @@ class Encoder(nn.Module):
     x = x.reshape(x.shape[0], -1)
     x = nn.Dense(self.feature_dim, kernel_init=_DENSE_INIT, dtype=self.dtype, name="fc")(x)
     return jnp.tanh(nn.LayerNorm(name="norm")(x.astype(jnp.float32)))
+
+
+@flax.struct.dataclass
+class Blocks:
+  """A `StrideTwoConv` input already cut into 2×2 blocks (`stride_two_blocks`).
+
+  Attributes:
+    data: (B, (H − 3)//2 + 2, (W − 3)//2 + 2, 4·C rounded up to a multiple of
+      `BLOCK_CHANNEL_MULTIPLE`): `space_to_depth` of the image, zero channels last.
+    channels: C, the channels of the image (static; the kernel's input channels).
+  """
+  data: jax.Array
+  channels: int = flax.struct.field(pytree_node=False)
+
+
+def stride_two_blocks(x: jax.Array) -> Blocks:
+  """The blocks `StrideTwoConv` convolves, for (B, H, W, C) images (H, W ≥ 3).
+
+  `space_to_depth` to (out_h + 1, out_w + 1) blocks (out = (side − 3)//2 + 1,
+  the convolution's output side), zero channels appended up to a multiple of
+  `BLOCK_CHANNEL_MULTIPLE`; the dtype is kept.
+  """
+  if x.ndim != 4 or min(x.shape[1:3]) < 3:
+    raise ValueError(f"expected (B, H, W, C) inputs with H, W ≥ 3, got shape {x.shape}")
+  out_h, out_w = (x.shape[1] - 3) // 2 + 1, (x.shape[2] - 3) // 2 + 1
+  blocks = space_to_depth(x, 2 * (out_h + 1), 2 * (out_w + 1))
+  extra = -blocks.shape[-1] % BLOCK_CHANNEL_MULTIPLE  # zero channels: the same sums
+  if extra:
+    blocks = jnp.pad(blocks, ((0, 0), (0, 0), (0, 0), (0, extra)))
+  return Blocks(blocks, x.shape[-1])
+
+
+def encoder_input(encoder: Encoder, obs: jax.Array) -> Blocks:
+  """What `encoder` computes from uint8 observations before its first convolution.
+
+  Center crop (if `encoder.input_size`), cast to `encoder.dtype`, /255, then
+  `stride_two_blocks`. ``encoder.apply(p, encoder_input(encoder, obs))`` equals
+  ``encoder.apply(p, obs)``; computing it once serves every pass over `obs`.
+
+  Args:
+    encoder: the `Encoder` (only its fields are read; no parameters).
+    obs: uint8 (B, H, W, C).
+
+  Returns:
+    `Blocks` in `encoder.dtype`.
+  """
+  if encoder.input_size is not None:
+    obs = center_crop(obs, encoder.input_size)
+  return stride_two_blocks(obs.astype(encoder.dtype) / 255.0)
 
 
 def center_crop(images: jax.Array, size: int) -> jax.Array:
@@ -182,19 +233,23 @@ class StrideTwoConv(nn.Module):
   bias_init: nn.initializers.Initializer = nn.initializers.zeros_init()
 
   @nn.compact
-  def __call__(self, x: jax.Array) -> jax.Array:
-    """Maps (B, H, W, C_in) to (B, (H − 3)//2 + 1, (W − 3)//2 + 1, features)."""
-    if x.ndim != 4 or min(x.shape[1:3]) < 3:
-      raise ValueError(f"expected (B, H, W, C) inputs with H, W ≥ 3, got shape {x.shape}")
-    x, kernel, bias = _conv3x3_params(self, x)
-    out_h, out_w = (x.shape[1] - 3) // 2 + 1, (x.shape[2] - 3) // 2 + 1
-    blocks = space_to_depth(x, 2 * (out_h + 1), 2 * (out_w + 1))
+  def __call__(self, x: jax.Array | Blocks) -> jax.Array:
+    """Maps (B, H, W, C_in) to (B, (H − 3)//2 + 1, (W − 3)//2 + 1, features).
+
+    `x` may also be `stride_two_blocks` of the input (the same result; its dtype
+    is then kept as given, as `dtype` would make it).
+    """
+    blocks = x if isinstance(x, Blocks) else stride_two_blocks(x)
+    kernel = self.param("kernel", self.kernel_init, (3, 3, blocks.channels, self.features),
+                        jnp.float32)
+    bias = self.param("bias", self.bias_init, (self.features,), jnp.float32)
+    data, kernel, bias = nn.dtypes.promote_dtype(blocks.data, kernel, bias,
+                                                 dtype=self.dtype)
     block_kernel = space_to_depth_kernel(kernel)
-    extra = -blocks.shape[-1] % BLOCK_CHANNEL_MULTIPLE  # zero channels: the same sums
+    extra = data.shape[-1] - block_kernel.shape[2]  # the blocks' zero channels
     if extra:
-      blocks = jnp.pad(blocks, ((0, 0), (0, 0), (0, 0), (0, extra)))
       block_kernel = jnp.pad(block_kernel, ((0, 0), (0, 0), (0, extra), (0, 0)))
-    y = jax.lax.conv_general_dilated(blocks, block_kernel, (1, 1), "VALID",
+    y = jax.lax.conv_general_dilated(data, block_kernel, (1, 1), "VALID",
                                      dimension_numbers=("NHWC", "HWIO", "NHWC"),
                                      precision=self.precision)
     return y + bias

@@ -55,8 +55,8 @@ import optax
 
 from dmcr_jax import augment
 from train import curl, sac_ae
-from train.networks import (LOG_STD_MAX, LOG_STD_MIN, Actor, Critic, Decoder, Encoder,
-                            encoder_sides)
+from train.networks import (LOG_STD_MAX, LOG_STD_MIN, Actor, Blocks, Critic, Decoder,
+                            Encoder, encoder_input, encoder_sides)
 from train.replay import Batch  # what `replay.sample` returns and `update` consumes
 
 Params = Any
@@ -134,6 +134,11 @@ class SACConfig:
     decoder_latent_lambda: SAC+AE's weight λ_z of the latent L2 penalty (1e-6).
     decoder_weight_lambda: SAC+AE's decoder weight decay λ_w (1e-7).
     decoder_bits: bits per value of SAC+AE's reconstruction target (5).
+    stage_inputs: how `update` computes the encoders' inputs (the same values
+      either way): True (default) writes the augmented, mixed uint8 observations
+      to memory once (`jax.lax.optimization_barrier`) before each distinct input
+      is cut into the first layer's blocks, once; False leaves XLA free to fuse
+      the sampling, augmentation and mixing into each of those inputs.
   """
   algo: str = "sac_aug"
   batch_size: int | None = None
@@ -160,6 +165,7 @@ class SACConfig:
   decoder_latent_lambda: float = 1e-6
   decoder_weight_lambda: float = 1e-7
   decoder_bits: int = 5
+  stage_inputs: bool = True
 
   def __post_init__(self):
     def fail(field, value, want):
@@ -214,6 +220,8 @@ class SACConfig:
         fail(field, value, "a finite number ≥ 0")
     if not _is_int(self.decoder_bits) or not 1 <= self.decoder_bits <= 8:
       fail("decoder_bits", self.decoder_bits, "an int in 1 … 8")
+    if not isinstance(self.stage_inputs, bool):
+      fail("stage_inputs", self.stage_inputs, "a bool")
     if self.algo == "curl" and (self.aug != "none" or self.beta != 1 or self.lam != 0):
       raise ValueError(
           "SACConfig(algo='curl'): CURL crops every row itself (observations rendered "
@@ -527,6 +535,58 @@ def augment_and_mix(key: jax.Array, batch: Batch, aug, beta: float
                         next_obs=mix(z_next_obs, batch.next_obs)), z_obs
 
 
+class EncoderInputs(NamedTuple):
+  """The encoder's inputs in one update, each prepared once (`encoder_inputs`).
+
+  Attributes:
+    critic: `Blocks` of the critic's pass (with gradient): the mixed ô, then,
+      with λ > 0, the z(o) rows ô lacks (rows n…B−1 of z(o)).
+    clean: `Blocks` of o[:n], the λ term's e(o) rows not in the critic's pass
+      (no gradient); None when λ = 0 or n = 0.
+    next_obs: `Blocks` of ô′, for the online and the target encoder (TD target).
+    obs: uint8 ô (B, H, W, C), the actor's input (encoded after the critic step).
+  """
+  critic: Blocks
+  clean: Blocks | None
+  next_obs: Blocks
+  obs: jax.Array
+
+
+def encoder_inputs(encoder: Encoder, batch: Batch, mixed: Batch, z_obs: jax.Array | None,
+                   config: SACConfig, stage: bool = False) -> EncoderInputs:
+  """The encoders' inputs of `critic_loss`, `td_target` and `actor_loss`, prepared once.
+
+  Args:
+    encoder: the encoder module (its dtype and crop).
+    batch: the un-augmented batch.
+    mixed: `augment_and_mix`'s mixed batch (CURL: its crops).
+    z_obs: z(o), all B rows (read only when λ > 0).
+    config: the hyperparameters (β, λ).
+    stage: first write the uint8 observations each input is cut from to memory
+      (`jax.lax.optimization_barrier`), so the work that made them (sampling,
+      augmentation, mixing) runs once, not inside each input's preparation.
+
+  Returns:
+    An `EncoderInputs`.
+  """
+  size = batch.obs.shape[0]
+  n = num_augmented(size, config.beta)
+  if config.lam > 0:
+    # (Empty pieces are left out statically: n is a Python int.)
+    parts = [x for x in (mixed.obs, z_obs[n:]) if x.shape[0]]
+    critic = jnp.concatenate(parts, axis=0) if len(parts) > 1 else parts[0]
+    clean = batch.obs[:n] if n else None
+  else:
+    critic, clean = mixed.obs, None
+  images = (critic, clean, mixed.next_obs)
+  if stage:
+    images = jax.lax.optimization_barrier(images)
+  critic, clean, next_obs = images
+  prepare = lambda x: None if x is None else encoder_input(encoder, x)
+  return EncoderInputs(critic=prepare(critic), clean=prepare(clean),
+                       next_obs=prepare(next_obs), obs=critic[:size])
+
+
 # --------------------------------------------------------------------------- #
 # Losses.
 # --------------------------------------------------------------------------- #
@@ -541,7 +601,7 @@ def td_target(agent: AgentState, next_obs: jax.Array, reward: jax.Array,
 
   Args:
     agent: the agent (online and target parameters, log α).
-    next_obs: uint8 (B, H, W, C), o′ (already mixed).
+    next_obs: uint8 (B, H, W, C), o′ (already mixed), or its `encoder_input`.
     reward: (B,).
     discount: (B,).
     key: a `jax.random` key for a′.
@@ -551,6 +611,8 @@ def td_target(agent: AgentState, next_obs: jax.Array, reward: jax.Array,
     float32 (B,).
   """
   nets, params, targets = agent.networks, agent.params, agent.target_params
+  if not isinstance(next_obs, Blocks):  # prepared once for both encoders
+    next_obs = encoder_input(nets.encoder, next_obs)
   features = nets.encoder.apply(params["encoder"], next_obs)
   next_action, next_log_prob = nets.actor.apply(params["actor"], features, key,
                                                 method=Actor.sample)
@@ -562,8 +624,8 @@ def td_target(agent: AgentState, next_obs: jax.Array, reward: jax.Array,
 
 
 def critic_loss(critic_params: Params, agent: AgentState, batch: Batch, mixed: Batch,
-                z_obs: jax.Array, key: jax.Array, config: SACConfig
-                ) -> tuple[jax.Array, Metrics]:
+                z_obs: jax.Array, key: jax.Array, config: SACConfig,
+                inputs: EncoderInputs | None = None) -> tuple[jax.Array, Metrics]:
   """L_encoder = L_critic + L_λ, a function of ``{"encoder", "critic"}`` (module doc).
 
   L_critic = mean_b (Q_1 − y)² + mean_b (Q_2 − y)² on the mixed batch;
@@ -581,6 +643,7 @@ def critic_loss(critic_params: Params, agent: AgentState, batch: Batch, mixed: B
     z_obs: `augment_and_mix`'s z(o), all B rows.
     key: a `jax.random` key for a′ in the target.
     config: the hyperparameters (β, λ, γ).
+    inputs: `encoder_inputs` of these batches (None: computed here).
 
   Returns:
     (L_encoder, metrics with "critic_loss" (L_critic), "lam_loss" (L_λ) and "q"
@@ -589,23 +652,25 @@ def critic_loss(critic_params: Params, agent: AgentState, batch: Batch, mixed: B
   encoder, critic = agent.networks.encoder, agent.networks.critic
   size = batch.obs.shape[0]
   n = num_augmented(size, config.beta)
-  y = td_target(agent, mixed.next_obs, mixed.reward, mixed.discount, key, config)
+  if inputs is None:
+    inputs = encoder_inputs(encoder, batch, mixed, z_obs, config)
+  y = td_target(agent, inputs.next_obs, mixed.reward, mixed.discount, key, config)
   if config.lam > 0:
     # One pass with gradient over the mixed batch and the z(o) rows it lacks.
     # (Empty pieces are left out statically: n is a Python int.)
     cat = lambda parts: jnp.concatenate([x for x in parts if x.shape[0]], axis=0)
-    all_features = encoder.apply(critic_params["encoder"], cat([mixed.obs, z_obs[n:]]))
+    all_features = encoder.apply(critic_params["encoder"], inputs.critic)
     features = all_features[:size]
     z_features = cat([all_features[:n], all_features[size:]])
     # e(o) is a constant (the paper: "only let gradients flow through the
     # e(z(o)) pass"; DESIGN.md's formula puts the sg on the wrong side).
     frozen_encoder = jax.lax.stop_gradient(critic_params["encoder"])
-    clean_head = [encoder.apply(frozen_encoder, batch.obs[:n])] if n else []
+    clean_head = [encoder.apply(frozen_encoder, inputs.clean)] if n else []
     clean = cat(clean_head + [features[n:]])
     diff = jax.lax.stop_gradient(clean) - z_features
     lam_loss = config.lam * jnp.mean(jnp.sum(jnp.square(diff), axis=-1))
   else:
-    features = encoder.apply(critic_params["encoder"], mixed.obs)
+    features = encoder.apply(critic_params["encoder"], inputs.critic)
     lam_loss = jnp.zeros((), jnp.float32)
   q1, q2 = critic.apply(critic_params["critic"], features, mixed.action)
   td_loss = jnp.mean(jnp.square(q1 - y)) + jnp.mean(jnp.square(q2 - y))
@@ -735,11 +800,13 @@ def update(agent: AgentState, batch: Batch, key: jax.Array, config: SACConfig, *
   else:
     mixed, z_obs = augment_and_mix(aug_key, batch, agent_augmentation(agent, config),
                                    config.beta)
+  inputs = encoder_inputs(agent.networks.encoder, batch, mixed, z_obs, config,
+                          stage=config.stage_inputs)
 
   critic_params = {"encoder": agent.params["encoder"],
                    "critic": agent.params["critic"]}
   grads, metrics = jax.grad(critic_loss, has_aux=True)(
-      critic_params, agent, batch, mixed, z_obs, target_key, config)
+      critic_params, agent, batch, mixed, z_obs, target_key, config, inputs)
   updates, critic_opt_state = critic_optimizer(config).update(
       grads, agent.critic_opt_state, critic_params)
   critic_params = optax.apply_updates(critic_params, updates)
@@ -749,7 +816,7 @@ def update(agent: AgentState, batch: Batch, key: jax.Array, config: SACConfig, *
   if update_actor:
     actor_params = agent.params["actor"]
     (loss, log_prob), grads = jax.value_and_grad(actor_loss, has_aux=True)(
-        actor_params, agent, mixed.obs, actor_key)
+        actor_params, agent, inputs.obs, actor_key)
     updates, actor_opt_state = actor_optimizer(config).update(
         grads, agent.actor_opt_state, actor_params)
     actor_params = optax.apply_updates(actor_params, updates)
@@ -766,8 +833,8 @@ def update(agent: AgentState, batch: Batch, key: jax.Array, config: SACConfig, *
     agent = soft_update_targets(agent, config)
     metrics.update(actor_loss=loss, alpha_loss=temp_loss, entropy=-jnp.mean(log_prob))
   if config.algo != "sac_aug":
-    aux_input = positive if config.algo == "curl" else mixed.obs
-    agent, aux_metrics = aux_step(agent, mixed.obs, aux_input,
+    aux_input = positive if config.algo == "curl" else inputs.obs
+    agent, aux_metrics = aux_step(agent, inputs.obs, aux_input,
                                   jax.random.fold_in(key, 3), config)
     metrics.update(aux_metrics)
   metrics["alpha"] = jnp.exp(agent.log_alpha)
