@@ -210,7 +210,10 @@ def update_agents(agents, buffers, key, pairs, spec: StepSpec, names: tuple[str,
       agent, m = update_pair(agent, buffer, jax.random.fold_in(k, i), spec.sac)
       return agent, {name: sums[name] + jnp.mean(m[name]).astype(jnp.float32)
                      for name in names}
-    zeros = {name: jnp.zeros((), jnp.float32) for name in names}
+    # Zeros derived from the agent, so under `shard_map` they vary along the agent
+    # axis as the sums do.
+    zero = (agent.step * 0).astype(jnp.float32)
+    zeros = {name: zero for name in names}
     static = isinstance(pairs, int)
     agent, sums = jax.lax.fori_loop(0, pairs, body, (agent, zeros),
                                     unroll=bool(unroll) if static and pairs else None)
