@@ -631,9 +631,9 @@ class JaxPixelVectorEnv(_PixelEnvBase):
 def to_host(x: jax.Array) -> np.ndarray:
   """A device array as a (read-only) NumPy array, through page-locked host memory.
 
-  `jax.device_get` copies into pageable memory: 38 ms for a (1,024, 84, 84, 9)
-  uint8 batch on the H100 box; put into the device's "pinned_host" memory first
-  (one DMA), the same batch arrives in 1.4 ms and NumPy views it without a copy.
+  `jax.device_get` copies into pageable memory; put into the device's
+  "pinned_host" memory first, a batch arrives in one DMA and NumPy views it
+  without a copy (the timings: benchmarks/results/env_h100.md).
   Devices without that memory kind take the plain path.
   """
   device = next(iter(x.devices()))
@@ -675,8 +675,8 @@ def make(task: str, num_envs: int = 1, visual_seeds: Any = 0,
       (default True: MuJoCo's picture), `render_chunk` (envs per render chunk,
       see `jax_env.make_env`), `render_kernel` (default False: render through
       XLA; True: in one fused GPU kernel, `visuals.jax_render_kernel`, with the same
-      frames, ~1.4× the agent-steps/s for ~6× the compile time on an H100; None: the
-      kernel on a GPU only), `obs_on_device`
+      frames, faster, for minutes of compiling: benchmarks/results/jax_env_h100.md;
+      None: the kernel on a GPU only), `obs_on_device`
       (default False; True returns observations as device arrays, skipping
       their transfer). Both:
       `solver_iterations`, `ls_iterations` for the physics (`models.load`);

@@ -258,9 +258,8 @@ def make_env(task: Task, num_envs: int, seeds: SeedRange | np.ndarray, vary,
     render_chunk: envs per render chunk; None = all at once up to `RENDER_CHUNK`
       envs, `RENDER_CHUNK` above.
     render_kernel: render in one fused GPU kernel (`jax_render_kernel`; same
-      frames; H100, walker, 4,096 envs: 34,609 agent-steps/s against ~25,000, but
-      350 s of compiling against ~60); None: on a GPU only (`jax_render.use_kernel`);
-      False (default): through XLA.
+      frames, faster, but minutes of compiling: benchmarks/results/jax_env_h100.md);
+      None: on a GPU only (`jax_render.use_kernel`); False (default): through XLA.
 
   Returns:
     The `PixelEnv`.

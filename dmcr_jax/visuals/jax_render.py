@@ -52,12 +52,11 @@ numbers and the texture bank through a reader: `ArrayReader` here, the kernel's
 `RefReader` in `jax_render_kernel`). The per-pixel code holds 3-vectors as (x, y, z)
 tuples, so it runs both under XLA and inside one fused Pallas kernel.
 
-Speed (benchmarks/results/jax_render_h100.md, H100, walker, 84×84, shadows and
-reflection, 4,096 envs): on a GPU `render_batch` draws every env in one fused kernel
-(`jax_render_kernel`; its frames equal this module's XLA path's, checked on the H100)
-at 612,580 frames/s; the XLA path (`kernel=False`, nearest hits as running minima, in
-chunks of 256 envs) at 192,532. On the CPU the nearest hits are taken from stacked
-distances (`running_minima`; both forms give the same frames).
+On a GPU `render_batch` draws every env in one fused kernel (`jax_render_kernel`;
+its frames equal this module's XLA path's); `kernel=False` takes the XLA path
+(nearest hits as running minima, in chunks of envs). On the CPU the nearest hits are
+taken from stacked distances (`running_minima`; both forms give the same frames).
+Speeds of both paths: benchmarks/results/jax_render_h100.md.
 
 Used by `dmcr_jax.make(..., renderer="jax")` (`dmcr_jax.jax_env`: physics, this
 renderer and frame stacks in one jitted call) and `train --renderer jax`.
@@ -105,7 +104,7 @@ MIP_COS_POWER = 1.0
 # an array with a length-3 axis: the same code then runs inside the fused GPU kernel
 # (`jax_render_kernel`, where a block's arrays must have power-of-two shapes) and
 # under XLA, where a sum over a length-3 axis would be a reduction that ends a GPU
-# fusion (H100, walker, 4,096 envs: 124,839 frames/s written out against 90,108).
+# fusion (the A/B is in benchmarks/results/jax_render_h100.md).
 # A 3×3 matrix is a 9-tuple, row-major.
 
 
@@ -548,11 +547,10 @@ def _obj_numbers(read):
 # Nearest hits come in two forms, chosen by backend (`running_minima`), with the
 # same result (ties go to the lower object index in both; tested): on a GPU, a
 # running minimum folded in object by object, which keeps each trace in registers
-# instead of writing a (K, P) array of distances and reducing it (H100, walker,
-# 4,096 envs in chunks of 256, an A/B with dots and rotations written out in both:
-# 116,586 frames/s against 99,610; jax_render_h100.md); on XLA's CPU
-# backend, which runs the long select chains several times slower (2-core CPU, walker,
-# 64 envs: 14 against 102 frames/s, jax_render_cpu.md), the stacked distances and argmin.
+# instead of writing a (K, P) array of distances and reducing it; on XLA's CPU
+# backend, which runs the long select chains several times slower, the stacked
+# distances and argmin (the A/Bs: jax_render_h100.md, jax_render_cpu.md in
+# benchmarks/results/).
 # The fused GPU kernel always folds.
 
 
@@ -1009,13 +1007,10 @@ def render_batch(scene: Scene, bp: BodyPoses, look: DeviceLook,
     scene, bp, look, variables: as for `render`, batched (the scene is shared).
     chunk: without the kernel, envs are rendered `chunk` at a time (`lax.map`
       over vmapped chunks; a remainder is one more, smaller chunk), which bounds
-      memory and, on a GPU, keeps a chunk's arrays in cache (H100, walker, 4,096
-      envs: 119,564 frames/s in chunks of 256 against 86,082 in chunks of 1,024).
-      The kernel ignores it.
+      memory and, on a GPU, keeps a chunk's arrays in cache. The kernel ignores it.
     kernel: render every env's pixels in one fused GPU kernel
-      (`jax_render_kernel`: the same per-pixel code and, checked on the H100, the
-      same frames; walker, 84×84, 4,096 envs: 612,580 frames/s against 192,532
-      here). None (default): on a GPU; see `use_kernel`.
+      (`jax_render_kernel`: the same per-pixel code and the same frames, faster).
+      None (default): on a GPU; see `use_kernel`.
     **kwargs: `render`'s static options (height, width, shadows, …).
 
   Returns:

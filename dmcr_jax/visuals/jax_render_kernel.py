@@ -1,8 +1,7 @@
 """The JAX ray caster as one fused GPU kernel (Pallas on Triton).
 
 Under XLA the ray caster (`jax_render`) is many mid-sized kernels per chunk of
-envs, and its time goes to moving per-pixel arrays between them (H100, walker,
-84×84, 4,096 envs: 192,532 frames/s, results/jax_render_h100.md). Here the same
+envs, and its time goes to moving per-pixel arrays between them. Here the same
 per-pixel code, `jax_render.trace_pixels`, runs inside one Pallas kernel: each
 program draws one block of `block` pixels of one env, with every intermediate in
 registers; only the env's packed numbers (`jax_render.pack_env`, computed by XLA
@@ -19,16 +18,10 @@ Each program also skips what none of its pixels needs (`skip_empty`, the default
 the opaque shading of an all-sky block, the sky of an all-surface block, the floor's
 reflection without floor pixels, the transparent layers without transparent hits).
 
-Checked on the H100 (results/jax_render_h100.md, `python -m benchmarks.jax_render
---mode check`, 64 envs, every visual factor varying, shadows and reflection): walker
-with `skip_empty` gives the XLA path's frames bit for bit; cartpole without it differs
-in 1 of 1,354,752 channel values, by one level.
-
-Measured (same file, one H100, 84×84, every visual factor varying, shadows and
-reflection): walker at 4,096 envs 612,580 frames/s (431,707 without `skip_empty`, same
-machine; the XLA path 192,532), cartpole at 1,024 envs 1,005,714. Compiling takes
-Triton 1.7–2.9 minutes per batch size on an H100 (the per-pixel code is unrolled over the scene's
-objects).
+`python -m benchmarks.jax_render --mode check` compares the kernel's frames with
+the XLA path's on a GPU; benchmarks/results/jax_render_h100.md holds that check, the
+frames/s of both paths and the kernel's compile time, which is its cost (the
+per-pixel code is unrolled over the scene's objects).
 """
 
 from __future__ import annotations
