@@ -306,11 +306,12 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     if seed is not None:
       seed = check_reset_seed(seed, self.num_envs)
       if np.ndim(seed) == 1:
-        keys = jax.vmap(jax.random.key)(jnp.asarray(seed))
-        self._key = jax.random.fold_in(keys[0], self.num_envs)
-        return self._reset(keys)
-      self._key = jax.random.key(seed)
-    self._key, key = jax.random.split(self._key)
+        key = jax.vmap(jax.random.key)(jnp.asarray(seed))
+        self._key = jax.random.fold_in(key[0], self.num_envs)
+      else:
+        self._key = jax.random.key(seed)
+    if seed is None or np.ndim(seed) == 0:
+      self._key, key = jax.random.split(self._key)
     self._pending = None
     return self._reset(self._on_physics(key))
 

@@ -39,6 +39,10 @@ def _make(renderer, **kwargs):
 
 @pytest.fixture(scope="module")
 def envs():
+  # The one-compilation check counts this module's envs only (other tests in the
+  # same process, e.g. `train --renderer jax` with the physics on the CPU, step
+  # envs of other sizes through the same jitted function).
+  jax_env.step.clear_cache()
   with _make("jax") as jenv, _make("pool", workers=1) as penv:
     yield jenv, penv
 

@@ -24,7 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from train import loop, sac
+from train import loop
+from train.step import to_env_action
 from train.evaluate import greedy_action, held_out_seeds
 from train.networks import StrideTwoConv, center_crop
 
@@ -70,7 +71,7 @@ def same_state_observations(env, agent, steps: int, seed: int = 0) -> np.ndarray
   low, high = env.single_action_space.low, env.single_action_space.high
   for _ in range(steps):
     action = np.asarray(greedy_action(agent, obs[:1]))
-    obs, *_ = env.step(loop.to_env_action(np.repeat(action, env.num_envs, 0), low, high))
+    obs, *_ = env.step(to_env_action(np.repeat(action, env.num_envs, 0), low, high))
   return obs
 
 
@@ -190,7 +191,7 @@ def episode_video(run_dir: str, out_dir: str, agent: int = 0, looks: int = 4,
     for _ in range(env.episode_length):
       tile = np.concatenate(list(obs[..., -3:]), axis=1)
       frames.append(np.repeat(np.repeat(tile, scale, 0), scale, 1))
-      action = loop.to_env_action(np.asarray(greedy_action(state, obs)), low, high)
+      action = to_env_action(np.asarray(greedy_action(state, obs)), low, high)
       obs, *_ = env.step(action)
   os.makedirs(out_dir, exist_ok=True)
   path = os.path.join(out_dir, "episode.mp4")

@@ -58,13 +58,10 @@ class Carry:
 def vector_step(penv: jax_env.PixelEnv, c: Carry, spec: train_step.StepSpec):
   """One training step of every agent's N envs (`train.step`'s module doc)."""
   learner, action, env_action = train_step.act(c.learner, c.env.obs, spec)
-  owed, pairs = train_step.owed_updates(c.owed, learner.step, spec, jnp)
-  learning = learner.step + spec.num_envs > spec.warmup_steps
-  ready = jax.lax.cond(c.ready | ~learning, lambda: c.ready,
-                       lambda: train_step.can_sample(learner.buffers))
-  run = learning & ready & (pairs > 0)
-  learner = train_step.learn(learner, jnp.where(run, pairs, 0), spec)
-  owed = jnp.where(run, owed - 2 * pairs, owed)
+  owed, ready, pairs = train_step.plan_updates(
+      c.owed, c.ready, learner.step, lambda: train_step.can_sample(learner.buffers), spec,
+      jnp)
+  learner = train_step.learn(learner, pairs, spec)
   first = c.env.physics.episode_step == 0
   env, reward, truncated = penv.step(c.env, env_action)
   learner = train_step.store(learner, c.env.obs, first, action, reward, spec)

@@ -42,6 +42,7 @@ import numpy as np
 from dmcr_jax import SeedRange
 from dmcr_jax.checks import positive_int
 from train import loop, paper_results, sac
+from train.step import to_env_action
 
 FACTOR_CONDITIONS: tuple[str, ...] = ("light", "camera", "body", "floor", "background",
                                       "target", "reflectance")
@@ -150,7 +151,7 @@ def run_episodes(env, policy, seed: int) -> np.ndarray:
   obs, _ = env.reset(seed=seed)
   low, high = env.single_action_space.low, env.single_action_space.high
   for _ in range(env.episode_length):
-    action = loop.to_env_action(np.asarray(policy(obs)), low, high)
+    action = to_env_action(np.asarray(policy(obs)), low, high)
     obs, _, _, truncated, info = env.step(action)
   if not truncated.all():
     raise RuntimeError("episodes did not all end together; the env's episode length is off")

@@ -63,7 +63,6 @@ from dmcr_jax.checks import positive_int
 from dmcr_jax.visuals.levels import SeedRange
 from train import replay, sac
 from train import step as train_step
-from train.step import to_env_action  # noqa: F401  (evaluation and analysis use it)
 
 
 AGENT_LOOPS = ("vmap", "map")
@@ -613,14 +612,12 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
     physics_first = physics_device is None or on_cpu
 
     def learn(learner, owed, ready, step):
-      """`train.step.learn` with the pairs owed at `step` (host counters)."""
-      owed, pairs = train_step.owed_updates(owed, step, spec)
-      learning = step + n > cfg.warmup_steps
-      ready = ready or (learning and bool(train_step.can_sample_jit(learner.buffers)))
-      run = learning and ready and pairs > 0
-      learner = train_step.learn_jit(learner, pairs=int(pairs) if run else 0, spec=spec,
-                                     mesh=mesh, unroll=on_cpu)
-      return learner, (owed - 2 * pairs if run else owed), ready
+      """`train.step.learn` with the pairs planned at `step` (host counters)."""
+      owed, ready, pairs = train_step.plan_updates(
+          owed, ready, step, lambda: train_step.can_sample_jit(learner.buffers), spec)
+      learner = train_step.learn_jit(learner, pairs=int(pairs), spec=spec, mesh=mesh,
+                                     unroll=on_cpu)
+      return learner, owed, ready
 
     log = RunLog(cfg, start, resume, progress)
     owed, ready = np.float32(0), False

@@ -105,15 +105,14 @@ def to_env_action(action, low, high):
   return (low + (xp.asarray(action) + 1.0) * 0.5 * (high - low)).astype(xp.float32)
 
 
-def policy_actions(agents: sac.AgentState, obs: jax.Array, keys: jax.Array, random):
+def policy_actions(agents: sac.AgentState, obs: jax.Array, keys: jax.Array,
+                   random: jax.Array):
   """Actions in [−1, 1] (K, N, A) for observations (K, N, H, W, C): the policies'
-  samples, or uniform where `random` (a bool, traced or not: the warm-up)."""
+  samples, or uniform where `random` (a traced bool: the warm-up)."""
   size = agents.networks.actor.action_size
   uniform = lambda: jax.vmap(lambda o, k: jax.random.uniform(
       k, (o.shape[0], size), minval=-1, maxval=1))(obs, keys)
   policy = lambda: jax.vmap(sac.act)(agents, obs, keys)
-  if isinstance(random, (bool, np.bool_)):
-    return uniform() if random else policy()
   return jax.lax.cond(random, uniform, policy)
 
 
@@ -158,6 +157,33 @@ def owed_updates(owed, step, spec: StepSpec, xp=np):
   new = spec.utd * (after - xp.maximum(step, spec.warmup_steps))
   owed = xp.where(after > spec.warmup_steps, owed + xp.float32(new), owed)
   return xp.float32(owed), xp.floor(owed / 2).astype(xp.int32)
+
+
+def plan_updates(owed, ready, step, can_sample_now, spec: StepSpec, xp=np):
+  """Which updates run at the step at `step` (both drivers' bookkeeping).
+
+  Args:
+    owed: updates owed and not yet run (float32).
+    ready: whether every buffer could be sampled at an earlier step (bool).
+    step: training steps per agent before this step.
+    can_sample_now: () → whether every buffer can be sampled now (`can_sample`);
+      asked only while learning and not yet ready.
+    spec: the `StepSpec`.
+    xp: `numpy` (host counters: `can_sample_now` returns a Python bool) or
+      `jax.numpy` (traced: it returns a traced bool, asked under `lax.cond`).
+
+  Returns:
+    (owed after this step's updates, ready, update pairs to run now: 0 until
+    learning starts and the buffers can be sampled; owed updates wait till then).
+  """
+  owed, pairs = owed_updates(owed, step, spec, xp)
+  learning = step + spec.num_envs > spec.warmup_steps
+  if xp is np:
+    ready = ready or (learning and bool(can_sample_now()))
+  else:
+    ready = jax.lax.cond(ready | ~learning, lambda: ready, can_sample_now)
+  run = learning & ready & (pairs > 0)
+  return xp.where(run, owed - 2 * pairs, owed), ready, xp.where(run, pairs, 0)
 
 
 def can_sample(buffers: replay.ReplayBuffer) -> jax.Array:
