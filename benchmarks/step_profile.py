@@ -88,7 +88,8 @@ def _median_time(fn, reps: int) -> float:
 
 def profile_env(task: str, n: int, quality: str, workers: int | None, frame_skip: int,
                 frame_stack: int, size: int, steps: int, warmup: int = 3,
-                copy_obs: bool = True) -> tuple[dict, dict]:
+                copy_obs: bool = True, physics_device: str | None = None
+                ) -> tuple[dict, dict]:
   """The env's parts of an agent step, and one step's data for the learner parts.
 
   Returns:
@@ -98,7 +99,8 @@ def profile_env(task: str, n: int, quality: str, workers: int | None, frame_skip
   t0 = time.perf_counter()
   env = dmcr_jax.make(task, num_envs=n, visual_seeds=np.arange(1, n + 1), vary="all",
                       frame_skip=frame_skip, frame_stack=frame_stack, image_size=size,
-                      quality=quality, workers=workers, copy_obs=copy_obs)
+                      quality=quality, workers=workers, copy_obs=copy_obs,
+                      physics_device=physics_device)
   with env:
     start_s = time.perf_counter() - t0
     rng = np.random.default_rng(0)
@@ -242,11 +244,12 @@ def filled_buffer(capacity: int, n: int, frame_shape: tuple, action_size: int, s
 
 def profile(task: str, n: int, quality: str, workers: int | None, frame_skip: int,
             frame_stack: int, size: int, steps: int, batch: int, dtype: str, utd: float,
-            capacity: int, pairs: int, reps: int, copy_obs: bool = True) -> dict:
+            capacity: int, pairs: int, reps: int, copy_obs: bool = True,
+            physics_device: str | None = None) -> dict:
   """One result row: every part of an agent step at N envs (see the module doc)."""
   import jax
   env_part, sample = profile_env(task, n, quality, workers, frame_skip, frame_stack, size,
-                                 steps, copy_obs=copy_obs)
+                                 steps, copy_obs=copy_obs, physics_device=physics_device)
   learner = profile_learner(sample, capacity, batch, dtype, pairs, reps)
   updates = n * utd
   parts = dict(env_part["parts_ms"], obs_to_device=learner["obs_to_device_ms"],
@@ -257,7 +260,8 @@ def profile(task: str, n: int, quality: str, workers: int | None, frame_skip: in
       bench="step_profile", device=device.device_kind, platform=device.platform,
       jax=jax.__version__, cpus=os.cpu_count(), task=task, num_envs=n, quality=quality,
       workers=env_part["workers"], frame_skip=frame_skip, frame_stack=frame_stack,
-      image_size=size, copy_obs=copy_obs, steps=steps, batch=batch, dtype=dtype, utd=utd,
+      image_size=size, copy_obs=copy_obs, physics_device=physics_device or device.platform,
+      steps=steps, batch=batch, dtype=dtype, utd=utd,
       capacity=capacity, pairs_per_call=pairs,
       compile_s=round(env_part["compile_s"] + sum(learner["compile_s"].values()), 2),
       compile_parts_s={"env": round(env_part["compile_s"], 2),
@@ -287,7 +291,8 @@ def markdown(rows: list[dict]) -> str:
   out = []
   for r in rows:
     out += [f"**{r['task']}, N = {r['num_envs']:,}, {r['quality']} ({r['workers']} workers), "
-            f"frame skip {r['frame_skip']}, {r['image_size']}×{r['image_size']}×"
+            f"frame skip {r['frame_skip']}, physics on {r.get('physics_device') or r['platform']}, "
+            f"{r['image_size']}×{r['image_size']}×"
             f"{3 * r['frame_stack']}; SAC batch {r['batch']}, {r['dtype']}, utd {r['utd']:g}; "
             f"{r['device']}, {r['time_utc']}**", "",
             "| part | ms per agent step | share | what |", "|---|---:|---:|---|"]
@@ -326,6 +331,9 @@ def main(argv=None) -> None:
                  help="update pairs per timed call (default: 1 on CPU, 10 otherwise)")
   p.add_argument("--reps", type=int, default=5, help="timed calls per learner part")
   p.add_argument("--no-copy", action="store_true", help="make(copy_obs=False)")
+  p.add_argument("--physics-device", default=None, choices=("cpu",),
+                 help="make(physics_device=...): cpu steps the physics on the host CPU "
+                      "(default: JAX's default device)")
   p.add_argument("--out", default=None, help="JSONL path (appended to); .md beside")
   a = p.parse_args(argv)
   from dmcr_jax.visuals.tiled import check_quality
@@ -348,7 +356,7 @@ def main(argv=None) -> None:
   for n in sizes:
     row = profile(a.task, n, a.quality, a.workers, a.frame_skip, a.frame_stack,
                   a.image_size, a.steps, a.batch, a.dtype, a.utd, a.capacity, pairs, a.reps,
-                  copy_obs=not a.no_copy)
+                  copy_obs=not a.no_copy, physics_device=a.physics_device)
     rows.append(row)
     print(json.dumps(row), flush=True)
     if a.out:
