@@ -61,8 +61,8 @@ def filled_buffers(k: int, capacity: int, size: int, stack: int, action_size: in
       action=jax.random.uniform(key, (k, 1, t, action_size), minval=-1, maxval=1),
       reward=jax.random.uniform(key, (k, 1, t)),
       first=jnp.broadcast_to(jnp.arange(t) % 125 == 0, (k, 1, t)),
-      pos=jnp.zeros((k,), jnp.int32),
-      count=jnp.full((k,), t, jnp.int32))
+      pos=jnp.zeros((k, 1), jnp.int32),
+      count=jnp.full((k, 1), t, jnp.int32))
 
 
 def _agents(k: int, obs_shape, action_size: int, config: sac.SACConfig):

@@ -239,7 +239,7 @@ def filled_buffer(capacity: int, n: int, frame_shape: tuple, action_size: int, s
       action=jax.random.uniform(key, empty.action.shape, minval=-1, maxval=1),
       reward=jax.random.uniform(key, empty.reward.shape),
       first=jnp.broadcast_to(jnp.arange(t) % 125 == 0, empty.first.shape),
-      pos=jnp.zeros((), jnp.int32), count=jnp.full((), t, jnp.int32))
+      pos=jnp.zeros_like(empty.pos), count=jnp.full_like(empty.count, t))
 
 
 def profile(task: str, n: int, quality: str, workers: int | None, frame_skip: int,

@@ -115,7 +115,7 @@ def run(train_argv: list[str], threshold: float, run_dir: str, baseline: bool = 
   return dict(
       bench="train", device=device.device_kind, platform=device.platform,
       jax=jax.__version__, cpus=os.cpu_count(), task=cfg.task, steps=summary["steps"],
-      agents=agents, num_envs=cfg.num_envs, quality=cfg.quality,
+      agents=agents, num_envs=cfg.num_envs, env_groups=cfg.env_groups, quality=cfg.quality,
       dtype=cfg.sac.compute_dtype, batch_size=cfg.sac.batch_size, utd=cfg.utd,
       action_repeat=cfg.action_repeat, wall_s=summary["wall_s"], process_s=process_s,
       transitions_per_s=summary["steps"] / summary["wall_s"] if summary["wall_s"] else None,
@@ -132,7 +132,8 @@ def run(train_argv: list[str], threshold: float, run_dir: str, baseline: bool = 
 
 def markdown(rows: list[dict]) -> str:
   """The rows as one Markdown table."""
-  lines = ["| device | task | renderer | physics | agents × envs | steps | dtype | quality "
+  lines = ["| device | task | renderer | physics | agents × envs (groups) | steps | dtype "
+           "| quality "
            "| loop wall s | whole run s | transitions/s | steady transitions/s "
            "| learner alone updates/s | ratio | first ≥ threshold (step, s) | final return "
            "| UTC |",
@@ -144,7 +145,8 @@ def markdown(rows: list[dict]) -> str:
     final = "–" if r.get("final_return") is None else f"{r['final_return']:.1f}"
     quality = r["quality"] if r.get("renderer", "pool") == "pool" else "–"
     lines.append(f"| {r['device']} | {r['task']} | {r.get('renderer', 'pool')} | "
-                 f"{r.get('physics', '–')} | {r['agents']} × {r['num_envs']} | "
+                 f"{r.get('physics', '–')} | {r['agents']} × {r['num_envs']} "
+                 f"({r.get('env_groups', 1)}) | "
                  f"{r['steps']:,} | {r['dtype']} | {quality} | {r['wall_s']:,.1f} | "
                  f"{r['process_s']:,.1f} | {r['transitions_per_s'] or 0:,.1f} | "
                  f"{num(r.get('steady_transitions_per_s'), ',.1f')} | "

@@ -122,7 +122,8 @@ def test_valid_mask_matches_reference(lengths, num_steps, ring, k):
   sim = _simulate(lengths, num_steps, k)
   ref = _reference_valid(sim, ring)
   buf = _fill(sim, ring, k)
-  assert int(buf.count) == min(num_steps, ring) and int(buf.pos) == num_steps % ring
+  np.testing.assert_array_equal(buf.count, min(num_steps, ring))
+  np.testing.assert_array_equal(buf.pos, num_steps % ring)
   mask = np.zeros((sim["n"], ring), bool)
   for i, t in ref:
     mask[i, t % ring] = True  # call t is written to slot t mod T
@@ -216,7 +217,7 @@ def test_init_layout_and_memory_formula():
   assert (buf.num_envs, buf.ring_size, buf.frame_stack) == (n, ring, k)
   assert len(jax.tree.leaves(buf)) == 6  # frame_stack is static
   nbytes = sum(x.nbytes for x in jax.tree.leaves(buf))
-  assert nbytes == n * ring * (math.prod(frame) + 4 * A + 4 + 1) + 8  # docstring formula
+  assert nbytes == n * ring * (math.prod(frame) + 4 * A + 4 + 1) + 8 * n  # + pos, count
 
 
 @pytest.mark.parametrize("kwargs,match", [
@@ -253,6 +254,40 @@ def test_add_and_sample_reject_bad_arguments():
     _add(buf, frame.astype(np.float32), first, act, rew)
   with pytest.raises(ValueError, match="batch_size"):
     replay.sample(buf, KEY, 0)
+
+
+def test_groups_written_apart_match_lockstep():
+  """Envs written a group at a time, one group a step ahead of the other (as the
+  host driver's env groups do), hold what lockstep writes hold: at every point
+  each env's valid transitions are its own reference, and once both groups
+  have written every step the buffer equals the lockstep one."""
+  lengths, num_steps, ring, k, g = (5, 3, 4, 6), 30, 12, 3, 2
+  sim = _simulate(lengths, num_steps, k)
+  buf = replay.init(ring * sim["n"], sim["n"], (H, W, 3), A, k)
+  add = jax.jit(replay.add, static_argnames="first_env")
+
+  def write(buf, t, group):
+    envs = slice(group * g, (group + 1) * g)
+    return add(buf, sim["frames"][t, envs], sim["first"][t, envs], sim["action"][t, envs],
+               sim["reward"][t, envs], first_env=group * g)
+
+  for t in range(num_steps):
+    buf = write(buf, t, 0)
+    if t in (4, 13, 29):  # group 0 has written t + 1 steps, group 1 t steps
+      mask = np.asarray(_valid(buf))
+      for group, steps in ((0, t + 1), (1, t)):
+        ref = _reference_valid(_simulate(lengths, steps, k), ring)
+        want = np.zeros((sim["n"], ring), bool)
+        for i, s in ref:
+          want[i, s % ring] = True
+        envs = slice(group * g, (group + 1) * g)
+        np.testing.assert_array_equal(mask[envs], want[envs])
+    buf = write(buf, t, 1)
+  lockstep = _fill(sim, ring, k)
+  jax.tree.map(np.testing.assert_array_equal, buf, lockstep)
+  with pytest.raises(ValueError, match="envs 3…4 are not among the buffer's 4 envs"):
+    add(buf, sim["frames"][0, :2], sim["first"][0, :2], sim["action"][0, :2],
+        sim["reward"][0, :2], first_env=3)
 
 
 def test_jitted_once_and_scan_matches_loop():

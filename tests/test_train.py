@@ -182,6 +182,45 @@ def test_host_and_device_drivers_train_identical_agents(tmp_path):
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+def test_env_groups_step_in_turn_and_store_each_groups_own_frames(tmp_path, monkeypatch):
+  # Two env groups (the host driver's double-buffered sampling): the groups store
+  # in turn, each group's stored observations are its own consecutive frame
+  # stacks (a stack is the previous one shifted by a frame, unless an episode
+  # starts), and the run owes and runs the updates an ungrouped run does.
+  from train import step as train_step
+  stores = []
+  store = train_step.store_jit
+
+  def recording_store(learner, obs, first, action, reward, **kw):
+    stores.append((kw.get("group", 0), np.asarray(obs), np.asarray(first)))
+    return store(learner, obs, first, action, reward, **kw)
+
+  monkeypatch.setattr(train_step, "store_jit", recording_store)
+  base = {k: v for k, v in CFG.items() if k not in ("quality", "workers")}
+  updates = {}
+  for groups in (1, 2):
+    stores.clear()
+    cfg = loop.TrainConfig(steps=24, num_envs=2, env_groups=groups, checkpoint_every=0,
+                           renderer="jax", physics="cpu", out_dir=str(tmp_path / str(groups)),
+                           **base)
+    loop.train(cfg, progress=False)
+    _, agents, step = loop.load_run(cfg.out_dir)
+    assert step == 24
+    updates[groups] = int(agents.step[0])
+  assert updates[1] == updates[2] > 0
+  assert [g for g, _, _ in stores] == [0, 1] * 12
+  for g in (0, 1):
+    mine = [(obs[0], first[0]) for gg, obs, first in stores if gg == g]
+    for (prev, _), (obs, first) in zip(mine, mine[1:]):
+      if not first:
+        np.testing.assert_array_equal(obs[..., :-3], prev[..., 3:])
+  with pytest.raises(ValueError, match="env_groups \\(3\\) must divide num_envs \\(2\\)"):
+    loop.check_config(loop.TrainConfig(num_envs=2, env_groups=3, **CFG))
+  with pytest.raises(ValueError, match="env_groups > 1 needs the host driver"):
+    loop.check_config(loop.TrainConfig(num_envs=2, env_groups=2, renderer="jax",
+                                       physics="device", **base))
+
+
 def test_agents_sharded_over_two_devices_or_mapped_match_one_vmapped_call():
   script = textwrap.dedent("""
       import dataclasses

@@ -94,6 +94,10 @@ def build_parser() -> argparse.ArgumentParser:
                  help="where the physics steps: auto (the host CPU for at most "
                       f"{CPU_PHYSICS_MAX_ENVS} envs in all when the learner runs on "
                       "an accelerator, else the device), cpu or device")
+  p.add_argument("--env-groups", type=int, default=d.env_groups,
+                 help="host driver: step each agent's envs in this many groups, one "
+                      "group per training step, so one group's physics and pixels are "
+                      "computed while the accelerator updates (must divide --num-envs)")
   p.add_argument("--chunk-steps", type=int, default=d.chunk_steps,
                  help="--renderer jax with the physics on the device: vector steps per "
                       "device call")
@@ -132,6 +136,7 @@ FLAG_FIELDS = {
     "buffer_capacity": lambda c: c.buffer_capacity, "batch_size": lambda c: c.sac.batch_size,
     "image_size": lambda c: c.image_size, "renderer": lambda c: c.renderer,
     "chunk_steps": lambda c: c.chunk_steps, "physics": lambda c: c.physics,
+    "env_groups": lambda c: c.env_groups,
     "quality": lambda c: c.quality,
     "workers": lambda c: c.workers, "dtype": lambda c: c.sac.compute_dtype,
     "agent_loop": lambda c: c.agent_loop, "checkpoint_every": lambda c: c.checkpoint_every,
@@ -168,6 +173,7 @@ def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
                       quality=a.quality, workers=a.workers, log_every=a.log_every,
                       checkpoint_every=a.checkpoint_every, agent_loop=a.agent_loop,
                       renderer=a.renderer, chunk_steps=a.chunk_steps, physics=a.physics,
+                      env_groups=a.env_groups,
                       out_dir=a.out or default_out(a.task, sac_cfg),
                       sac=sac_cfg)
     if a.resume:

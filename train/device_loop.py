@@ -59,7 +59,7 @@ def vector_step(penv: jax_env.PixelEnv, c: Carry, spec: train_step.StepSpec):
   """One training step of every agent's N envs (`train.step`'s module doc)."""
   learner, action, env_action = train_step.act(c.learner, c.env.obs, spec)
   owed, ready, pairs = train_step.plan_updates(
-      c.owed, c.ready, learner.step, lambda: train_step.can_sample(learner.buffers), spec,
+      c.owed, c.ready, c.learner.step, lambda: train_step.can_sample(learner.buffers), spec,
       jnp)
   learner = train_step.learn(learner, pairs, spec)
   first = c.env.physics.episode_step == 0

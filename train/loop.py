@@ -16,6 +16,19 @@ an accelerator: a few dozen envs step there faster than an accelerator's launch
 latency allows, and off the accelerator's queue, so the updates and the physics
 run at the same time; larger batches step on the accelerator.
 
+Env groups (`TrainConfig.env_groups` = G, host driver): each agent's N envs are
+G envs of N/G (G `dmcr_jax.make` envs, each with its own render workers), stepped
+one group per training step in turn: group g acts, its physics is dispatched and
+the updates owed for its N/G transitions are dispatched, then the group stepped
+longest ago finishes (`step_wait`: its pixels) and its transitions are stored.
+With G = 2 one group's physics and pixels are computed on the host while the
+accelerator runs the updates and acts for the other (double-buffered sampling),
+so the host's env work stays off the training step's critical path as long as it
+takes less than G steps' updates. Every transition is acted on by the freshest
+policy the accelerator has; updates sample the transitions stored so far (those
+of the groups still stepping are not yet in the buffers). G = 1 is the plain
+vector step.
+
 Agents: one per (augmentation, seed) pair: `seeds` × `sac.aug_names` (e.g.
 ``aug="drq,cj+drq"`` with 3 seeds trains 6 agents; an agent's network init
 depends only on its seed, so augmentations are compared from the same start).
@@ -45,6 +58,7 @@ restored policy, and updates wait until each buffer can be sampled again.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import functools
@@ -114,6 +128,8 @@ class TrainConfig:
       vector steps (of all envs) per XLA call; logs, checkpoints and the stop
       flag are handled between chunks.
     physics: where the physics steps: "auto", "cpu" or "device" (module doc).
+    env_groups: G, the groups each agent's N envs step in with the host driver
+      (module doc); G divides N; 1 with the device driver.
     out_dir: where the CSV, the PNG and the checkpoints go.
     sac: the learner's hyperparameters.
   """
@@ -138,6 +154,7 @@ class TrainConfig:
   renderer: str = "pool"
   chunk_steps: int = 50
   physics: str = "auto"
+  env_groups: int = 1
   sac: sac.SACConfig = sac.SACConfig()
 
   def __post_init__(self):
@@ -224,6 +241,13 @@ def check_config(cfg: TrainConfig) -> None:
       check_range(seeds)
   if cfg.physics not in PHYSICS:
     raise ValueError(f"physics must be one of {', '.join(PHYSICS)}, got {cfg.physics!r}")
+  groups = positive_int("env_groups", cfg.env_groups)
+  if cfg.num_envs % groups:
+    raise ValueError(f"env_groups ({groups}) must divide num_envs ({cfg.num_envs}): each "
+                     "group steps num_envs / env_groups envs per agent")
+  if groups > 1 and cfg.renderer == "jax" and cfg.physics_device() is None:
+    raise ValueError("env_groups > 1 needs the host driver: the pool renderer, or "
+                     "--renderer jax with the physics on the host CPU (physics 'cpu')")
   if cfg.agent_loop is not None and cfg.agent_loop not in AGENT_LOOPS:
     raise ValueError(f"agent_loop must be one of {', '.join(AGENT_LOOPS)}, got "
                      f"{cfg.agent_loop!r}")
@@ -559,20 +583,30 @@ def step_spec(cfg: TrainConfig, env) -> train_step.StepSpec:
       utd=float(cfg.utd), sac=cfg.sac,
       agent_loop=cfg.agent_loop or ("vmap" if on_cpu else "map"),
       low=tuple(float(x) for x in env.single_action_space.low),
-      high=tuple(float(x) for x in env.single_action_space.high))
+      high=tuple(float(x) for x in env.single_action_space.high),
+      env_groups=cfg.env_groups)
 
 
-def make_env(cfg: TrainConfig, **options):
-  """The run's `dmcr_jax.make` env of K·N envs (`options` go to `make`)."""
+def make_env(cfg: TrainConfig, num_envs: int | None = None, **options):
+  """The run's `dmcr_jax.make` env: `num_envs` envs per agent (None: N), K·that
+  in all (`options` go to `make`)."""
   import dmcr_jax
   k = len(cfg.agents())
   if cfg.renderer == "pool":
     options = dict(quality=cfg.quality, workers=cfg.workers, **options)
-  return dmcr_jax.make(cfg.task, num_envs=k * cfg.num_envs,
+  return dmcr_jax.make(cfg.task, num_envs=k * (num_envs or cfg.num_envs),
                        visual_seeds=parse_visual_seeds(cfg.visual_seeds), vary=cfg.vary,
                        frame_skip=cfg.action_repeat, frame_stack=cfg.frame_stack,
                        image_size=cfg.image_size, seed=int(cfg.seeds[0]),
                        renderer=cfg.renderer, **options)
+
+
+def group_seed(seed: int, group: int) -> int:
+  """The `reset` seed of env group `group` in a run reset with `seed` (group 0:
+  `seed` itself, so one group resets as an ungrouped run does)."""
+  if group == 0:
+    return seed
+  return int(np.random.SeedSequence([seed, group]).generate_state(1)[0])
 
 
 def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict:
@@ -596,16 +630,18 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
     from train import device_loop
     return device_loop.train(cfg, resume=resume, progress=progress)
   manager = open_run(cfg, resume)
-  k, n = len(cfg.agents()), cfg.num_envs
+  groups = cfg.env_groups
+  k, n = len(cfg.agents()), cfg.num_envs // groups
   extra = dict(obs_on_device=True) if cfg.renderer == "jax" else {}
-  env = make_env(cfg, physics_device=physics_device, **extra)
-  with env:
-    obs_shape = env.single_observation_space.shape
+  with contextlib.ExitStack() as stack:
+    envs = [stack.enter_context(make_env(cfg, n, physics_device=physics_device, **extra))
+            for _ in range(groups)]
+    obs_shape = envs[0].single_observation_space.shape
     mesh = _mesh(k)
     on_cpu = jax.default_backend() == "cpu"
-    spec = step_spec(cfg, env)
+    spec = step_spec(cfg, envs[0])
     agents, buffers, key, start = initial_state(cfg, manager, resume, obs_shape,
-                                                env.task.action_size)
+                                                envs[0].task.action_size)
     learner = train_step.init_learner(_put(agents, mesh), _put(buffers, mesh), key, start,
                                       spec)
     put = lambda x: _put(jnp.asarray(x), mesh)
@@ -621,41 +657,55 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
 
     log = RunLog(cfg, start, resume, progress)
     owed, ready = np.float32(0), False
+    # Per group: its current observations and episode-start flags; `in_flight`
+    # holds what `store` needs of a group stepping (dispatched, not yet waited).
+    obs, first, in_flight = [None] * groups, [None] * groups, {}
     try:
-      obs, info = env.reset(seed=int(cfg.seeds[0]) + start)
-      first = info["episode_step"] == 0
-      step = start
-      while step < cfg.steps and not log.stopped:
-        obs = put(obs)
-        learner, action, env_action = train_step.act_jit(learner, obs, spec=spec, mesh=mesh)
-        env_action = np.asarray(env_action)
-        # The updates owed run while the env steps: dispatched before the physics
-        # when it steps elsewhere (the host CPU), after it when it shares their
-        # device (it then leaves the queue first, and the CPU renders while the
-        # updates run).
-        if not physics_first:
-          learner, owed, ready = learn(learner, owed, ready, step)
-        env.step_async(env_action)
-        if physics_first:
-          learner, owed, ready = learn(learner, owed, ready, step)
-        next_obs, reward, _, truncated, info = env.step_wait()
-        learner = train_step.store_jit(learner, obs, put(first), action, put(reward),
-                                       spec=spec, mesh=mesh)
-        before, step = step, step + n
-        obs, first = next_obs, info["episode_step"] == 0
-        wall = log.wall()
-        metrics = jax.device_get(learner.metrics) if truncated.any() else {}
-        for i in np.flatnonzero(truncated):
-          log.episode(step, int(i // n), float(info["episode_return"][i]), wall, metrics)
-        if log.due(before, step):
-          log.progress(step)
-        if crossed(cfg.checkpoint_every, before, step):
-          _save(manager, step, learner.agents, learner.key)
-      if manager.latest_step() != step:
-        _save(manager, step, learner.agents, learner.key)
+      for g, env in enumerate(envs):
+        obs[g], info = env.reset(seed=group_seed(int(cfg.seeds[0]) + start, g))
+        first[g] = info["episode_step"] == 0
+      acted = stored = start  # transitions per agent acted on / stored
+      g = 0
+      while True:
+        acting = acted < cfg.steps and not log.stopped
+        if acting:  # group g acts and steps; the updates owed run meanwhile
+          o, f = put(obs[g]), put(first[g])
+          learner, action, env_action = train_step.act_jit(learner, o, spec=spec, mesh=mesh)
+          env_action = np.asarray(env_action)
+          # Dispatched before the physics when it steps elsewhere (the host CPU),
+          # after it when it shares their device (it then leaves the queue first,
+          # and the CPU renders while the updates run).
+          if not physics_first:
+            learner, owed, ready = learn(learner, owed, ready, acted)
+          envs[g].step_async(env_action)
+          if physics_first:
+            learner, owed, ready = learn(learner, owed, ready, acted)
+          in_flight[g] = (o, f, action)
+          acted += n
+        g = (g + 1) % groups  # the group stepped longest ago finishes and acts next
+        if g in in_flight:
+          next_obs, reward, _, truncated, info = envs[g].step_wait()
+          o, f, action = in_flight.pop(g)
+          learner = train_step.store_jit(learner, o, f, action, put(reward), spec=spec,
+                                         mesh=mesh, group=g)
+          before, stored = stored, stored + n
+          obs[g], first[g] = next_obs, info["episode_step"] == 0
+          wall = log.wall()
+          metrics = jax.device_get(learner.metrics) if truncated.any() else {}
+          for i in np.flatnonzero(truncated):
+            log.episode(stored, int(i // n), float(info["episode_return"][i]), wall,
+                        metrics)
+          if log.due(before, stored):
+            log.progress(stored)
+          if crossed(cfg.checkpoint_every, before, stored):
+            _save(manager, stored, learner.agents, learner.key)
+        if not acting and not in_flight:
+          break
+      if manager.latest_step() != stored:
+        _save(manager, stored, learner.agents, learner.key)
     finally:
       log.close()
-  return finish(cfg, step, log)
+  return finish(cfg, stored, log)
 
 
 def agent_label(seed: int, aug: str, augs) -> str:

@@ -53,17 +53,17 @@ class ReplayBuffer:
 
   Row t of env n (one slot of its ring) holds the newest frame of an
   observation, the action taken from it, the reward that followed and whether
-  the frame starts an episode. All envs write in lockstep, so one write
-  position and one count serve them all; the k-th `add` call writes slot
-  k mod T.
+  the frame starts an episode. Each env's ring has its own write position and
+  count: the k-th row `add` writes for env n goes to its slot k mod T (a driver
+  that steps its envs in groups writes a group at a time).
 
   Attributes:
     frames: uint8 (N, T, H, W, C), each frame stored once.
     action: float32 (N, T, A), the action taken at that frame.
     reward: float32 (N, T), the reward that followed it.
     first: bool (N, T), the frame is an episode's first observation.
-    pos: int32 (), the slot the next `add` writes.
-    count: int32 (), rows written per env, at most T.
+    pos: int32 (N,), the slot each env's next row goes to.
+    count: int32 (N,), rows written per env, at most T.
     frame_stack: static; frames per observation.
   """
   frames: jax.Array
@@ -126,8 +126,8 @@ def init(capacity: int, num_envs: int, frame_shape: tuple[int, int, int],
       action=jnp.zeros((n, t, a), jnp.float32),
       reward=jnp.zeros((n, t), jnp.float32),
       first=jnp.zeros((n, t), bool),
-      pos=jnp.zeros((), jnp.int32),
-      count=jnp.zeros((), jnp.int32),
+      pos=jnp.zeros((n,), jnp.int32),
+      count=jnp.zeros((n,), jnp.int32),
       frame_stack=k)
 
 
@@ -137,8 +137,9 @@ def _check(name: str, x, shape: tuple[int, ...]) -> None:
 
 
 def add(buffer: ReplayBuffer, frame: jax.Array, first: jax.Array, action: jax.Array,
-        reward: jax.Array) -> ReplayBuffer:
-  """Appends one agent step of every env (jittable; donate `buffer`).
+        reward: jax.Array, first_env: int = 0) -> ReplayBuffer:
+  """Appends one agent step of envs `first_env` … `first_env + G − 1` (jittable;
+  donate `buffer`); G = N by default (every env).
 
   Call it after each ``env.step(action)`` with the PREVIOUS observation's data:
   ``add(buf, obs[..., -C:], info["episode_step"] == 0, action, reward)``. The
@@ -148,34 +149,42 @@ def add(buffer: ReplayBuffer, frame: jax.Array, first: jax.Array, action: jax.Ar
 
   Args:
     buffer: the buffer.
-    frame: uint8 (N, H, W, C), the newest frame of the observation.
-    first: bool (N,), the observation is an episode's first (its stack is that
+    frame: uint8 (G, H, W, C), the newest frame of each env's observation.
+    first: bool (G,), the observation is an episode's first (its stack is that
       frame repeated).
-    action: (N, A), the action taken from the observation (stored as float32).
-    reward: (N,), the reward the env returned for it (stored as float32).
+    action: (G, A), the action taken from the observation (stored as float32).
+    reward: (G,), the reward the env returned for it (stored as float32).
+    first_env: static int, the ring of the first of the G envs.
 
   Returns:
-    The buffer with the step written at `pos`, overwriting the oldest row once
-    the rings are full.
+    The buffer with each env's step written at its `pos`, overwriting its oldest
+    row once its ring is full.
 
   Raises:
-    ValueError/TypeError (at trace time): wrong shapes, or a frame not uint8.
+    ValueError/TypeError (at trace time): wrong shapes, envs past N, or a frame
+    not uint8.
   """
-  n, _, h, w, c = buffer.frames.shape
-  _check("frame", frame, (n, h, w, c))
-  _check("first", first, (n,))
-  _check("action", action, (n, buffer.action.shape[-1]))
-  _check("reward", reward, (n,))
+  n, t, h, w, c = buffer.frames.shape
+  g = jnp.shape(first)[0] if jnp.ndim(first) else 0
+  if not 0 <= first_env or first_env + g > n:
+    raise ValueError(f"envs {first_env}…{first_env + g - 1} are not among the buffer's "
+                     f"{n} envs")
+  _check("frame", frame, (g, h, w, c))
+  _check("first", first, (g,))
+  _check("action", action, (g, buffer.action.shape[-1]))
+  _check("reward", reward, (g,))
   if jnp.result_type(frame) != jnp.uint8:
     raise TypeError(f"frame must be uint8, got {jnp.result_type(frame)}")
-  pos = buffer.pos
+  envs = slice(first_env, first_env + g)
+  rows = jnp.arange(first_env, first_env + g)
+  pos = buffer.pos[envs]
   return buffer.replace(
-      frames=buffer.frames.at[:, pos].set(frame),
-      action=buffer.action.at[:, pos].set(jnp.asarray(action, jnp.float32)),
-      reward=buffer.reward.at[:, pos].set(jnp.asarray(reward, jnp.float32)),
-      first=buffer.first.at[:, pos].set(jnp.asarray(first, bool)),
-      pos=(pos + 1) % buffer.ring_size,
-      count=jnp.minimum(buffer.count + 1, buffer.ring_size))
+      frames=buffer.frames.at[rows, pos].set(frame),
+      action=buffer.action.at[rows, pos].set(jnp.asarray(action, jnp.float32)),
+      reward=buffer.reward.at[rows, pos].set(jnp.asarray(reward, jnp.float32)),
+      first=buffer.first.at[rows, pos].set(jnp.asarray(first, bool)),
+      pos=buffer.pos.at[envs].set((pos + 1) % t),
+      count=buffer.count.at[envs].set(jnp.minimum(buffer.count[envs] + 1, t)))
 
 
 def valid_mask(buffer: ReplayBuffer) -> jax.Array:
@@ -196,13 +205,13 @@ def valid_mask(buffer: ReplayBuffer) -> jax.Array:
     bool (N, T), indexed by ring slot.
   """
   t, k = buffer.ring_size, buffer.frame_stack
-  oldest = (buffer.pos - buffer.count) % t
-  j = (jnp.arange(t) - oldest) % t                  # (T,) logical index per slot
+  oldest = (buffer.pos - buffer.count) % t          # (N,)
+  j = (jnp.arange(t)[None] - oldest[:, None]) % t   # (N, T) logical index per slot
   next_first = jnp.roll(buffer.first, -1, axis=1)   # slot s -> first[s+1]
-  ok = (j + 1 < buffer.count)[None] & ~next_first
-  stored = jnp.broadcast_to(j >= k - 1, buffer.first.shape)
+  ok = (j + 1 < buffer.count[:, None]) & ~next_first
+  stored = j >= k - 1
   for d in range(k - 1):  # an episode start at row j-d, itself stored
-    stored |= jnp.roll(buffer.first, d, axis=1) & (j >= d)[None]
+    stored |= jnp.roll(buffer.first, d, axis=1) & (j >= d)
   return ok & stored
 
 
@@ -278,7 +287,7 @@ def check_can_sample(buffer: ReplayBuffer) -> int:
   v = int(num_valid(buffer))
   if v == 0:
     raise ValueError(
-        f"the replay buffer holds no valid transition yet ({int(buffer.count)} rows per "
-        "env written); add more steps before sampling (a transition needs its next "
+        f"the replay buffer holds no valid transition yet (at most "
+        f"{int(jnp.max(buffer.count))} rows per env written); add more steps before sampling (a transition needs its next "
         "frame written and not an episode start)")
   return v

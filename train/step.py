@@ -15,6 +15,14 @@ this order:
 4. `store`: the transition (the newest frame of the observation acted on, its
    episode-start flag, the action, the reward) into every agent's buffer.
 
+Env groups (`StepSpec.env_groups` = G): the host driver may step each agent's
+N envs as G groups of N/G, one group per training step, so that while one
+group's physics and pixels are computed on the host the others' are already
+done and the accelerator runs the updates (Sample Factory's double-buffered
+sampling, for G = 2). A step then acts on, owes updates for and stores the
+transitions of one group (`store`'s `group`); with G = 1 a step is the vector
+step above.
+
 The state between steps is one `Learner` (a frozen pytree). Its key is split by
 `act` and by `learn`, every step, whether or not updates run, so one seed gives
 one RNG stream whichever driver runs the step.
@@ -55,7 +63,7 @@ class Learner:
     agents: the `sac.AgentState`s.
     buffers: their `replay.ReplayBuffer`s.
     key: the run's PRNG key.
-    step: int32 training steps (transitions) per agent so far.
+    step: int32 transitions per agent acted on so far (`act` counts them).
     metrics: name → float32 (K,) means of the latest updates (NaN before any).
   """
   agents: sac.AgentState
@@ -77,6 +85,7 @@ class StepSpec:
     sac: the learner's hyperparameters.
     agent_loop: "vmap" or "map" (module doc).
     low, high: the env's action bounds (policy actions in [−1, 1] map onto them).
+    env_groups: G, the groups a step's envs come in (module doc); divides N.
   """
   agents: int
   num_envs: int
@@ -86,6 +95,12 @@ class StepSpec:
   agent_loop: str
   low: tuple
   high: tuple
+  env_groups: int = 1
+
+  @property
+  def step_envs(self) -> int:
+    """Envs per agent in one training step: N / G."""
+    return self.num_envs // self.env_groups
 
 
 def _agent_parallel(fn, mesh):
@@ -121,15 +136,15 @@ def act(learner: Learner, obs: jax.Array, spec: StepSpec, mesh=None):
 
   Args:
     learner: the `Learner`.
-    obs: uint8 (K·N, H, W, C) observations of all envs.
+    obs: uint8 (K·n, H, W, C) observations of the step's envs (n = N / G).
     spec: the `StepSpec`.
     mesh: a device mesh over the agent axis, or None.
 
   Returns:
-    (learner with its key advanced, actions in [−1, 1] (K, N, A) for the buffer,
-    the same in the env's bounds (K·N, A) for the env).
+    (learner with its key and step count advanced, actions in [−1, 1] (K, n, A)
+    for the buffer, the same in the env's bounds (K·n, A) for the env).
   """
-  k, n = spec.agents, spec.num_envs
+  k, n = spec.agents, spec.step_envs
   key, k_act = jax.random.split(learner.key)
   obs = obs.reshape((k, n) + obs.shape[1:])
   # The warm-up flag travels with the agent axis, so `shard_map` splits it too.
@@ -138,22 +153,22 @@ def act(learner: Learner, obs: jax.Array, spec: StepSpec, mesh=None):
   action = _agent_parallel(fn, mesh)(learner.agents, obs, jax.random.split(k_act, k),
                                      random)
   env_action = to_env_action(action.reshape(k * n, -1), spec.low, spec.high)
-  return learner.replace(key=key), action, env_action
+  return learner.replace(key=key, step=learner.step + n), action, env_action
 
 
 def owed_updates(owed, step, spec: StepSpec, xp=np):
-  """Updates owed once the N transitions of the step at `step` are collected.
+  """Updates owed once the N / G transitions of the step at `step` are collected.
 
   Args:
     owed: updates owed and not yet run (float32).
-    step: training steps per agent before this step.
-    spec: the `StepSpec` (N, warm-up, utd).
+    step: transitions per agent acted on before this step.
+    spec: the `StepSpec` (N / G, warm-up, utd).
     xp: `numpy` (a host driver's counters) or `jax.numpy` (traced).
 
   Returns:
     (owed including this step's, update pairs that can run now: ⌊owed / 2⌋).
   """
-  after = step + spec.num_envs
+  after = step + spec.step_envs
   new = spec.utd * (after - xp.maximum(step, spec.warmup_steps))
   owed = xp.where(after > spec.warmup_steps, owed + xp.float32(new), owed)
   return xp.float32(owed), xp.floor(owed / 2).astype(xp.int32)
@@ -165,7 +180,7 @@ def plan_updates(owed, ready, step, can_sample_now, spec: StepSpec, xp=np):
   Args:
     owed: updates owed and not yet run (float32).
     ready: whether every buffer could be sampled at an earlier step (bool).
-    step: training steps per agent before this step.
+    step: transitions per agent acted on before this step.
     can_sample_now: () → whether every buffer can be sampled now (`can_sample`);
       asked only while learning and not yet ready.
     spec: the `StepSpec`.
@@ -177,7 +192,7 @@ def plan_updates(owed, ready, step, can_sample_now, spec: StepSpec, xp=np):
     learning starts and the buffers can be sampled; owed updates wait till then).
   """
   owed, pairs = owed_updates(owed, step, spec, xp)
-  learning = step + spec.num_envs > spec.warmup_steps
+  learning = step + spec.step_envs > spec.warmup_steps
   if xp is np:
     ready = ready or (learning and bool(can_sample_now()))
   else:
@@ -279,27 +294,30 @@ def learn(learner: Learner, pairs, spec: StepSpec, mesh=None, unroll: bool = Fal
 
 
 def store(learner: Learner, obs: jax.Array, first: jax.Array, action: jax.Array,
-          reward: jax.Array, spec: StepSpec, mesh=None) -> Learner:
-  """Step 4 (module doc): one transition per env into its agent's buffer.
+          reward: jax.Array, spec: StepSpec, mesh=None, group: int = 0) -> Learner:
+  """Step 4 (module doc): one transition per env of a group into its agent's
+  buffer.
 
   Args:
     learner: the `Learner`.
-    obs: uint8 (K·N, H, W, 3·stack), the observations acted on (their newest
-      frame is stored).
-    first: bool (K·N,), that observation began an episode.
-    action: (K, N, A) the actions taken (in [−1, 1], as `act` returned them).
-    reward: float32 (K·N,) the rewards that followed.
+    obs: uint8 (K·n, H, W, 3·stack), the observations acted on (their newest
+      frame is stored); n = N / G, agent k's envs first.
+    first: bool (K·n,), that observation began an episode.
+    action: (K, n, A) the actions taken (in [−1, 1], as `act` returned them).
+    reward: float32 (K·n,) the rewards that followed.
     spec, mesh: as for `act`.
+    group: static, the env group (its envs are rings group·n … of each buffer).
 
   Returns:
-    The learner, its step count advanced by N.
+    The learner with its buffers holding the transitions.
   """
-  k, n = spec.agents, spec.num_envs
+  k, n = spec.agents, spec.step_envs
   per_agent = lambda x: x.reshape((k, n) + x.shape[1:])
-  add = _agent_parallel(jax.vmap(replay.add), mesh)
+  add = _agent_parallel(
+      jax.vmap(lambda *args: replay.add(*args, first_env=group * n)), mesh)
   buffers = add(learner.buffers, per_agent(obs[..., -3:]), per_agent(first), action,
                 per_agent(reward))
-  return learner.replace(buffers=buffers, step=learner.step + n)
+  return learner.replace(buffers=buffers)
 
 
 def init_learner(agents: sac.AgentState, buffers: replay.ReplayBuffer, key: jax.Array,
@@ -319,5 +337,5 @@ _STATIC = ("spec", "mesh")
 act_jit = jax.jit(act, static_argnames=_STATIC)
 learn_jit = jax.jit(learn, static_argnames=_STATIC + ("pairs", "unroll"),
                     donate_argnums=(0,))
-store_jit = jax.jit(store, static_argnames=_STATIC, donate_argnums=(0,))
+store_jit = jax.jit(store, static_argnames=_STATIC + ("group",), donate_argnums=(0,))
 can_sample_jit = jax.jit(can_sample)
