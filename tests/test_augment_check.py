@@ -6,6 +6,7 @@ others pass or are skipped because they need it).
 """
 
 import itertools
+import json
 
 import jax
 import jax.numpy as jnp
@@ -170,3 +171,17 @@ def test_import_paths_load_and_explain_failures():
     augment.get("examples.augmentations:nope")
   with pytest.raises(ValueError, match="not callable|fn\\(key, image\\)"):
     augment.get("examples.augmentations:jnp.pi")
+
+
+def test_benchmark_times_an_imported_augmentation_beside_the_builtins(tmp_path):
+  from benchmarks import augment as bench
+  out = tmp_path / "augment.jsonl"
+  bench.main(["--batch", "4", "--size", "16", "--names", "none,drq", "--aug",
+              "examples.augmentations:hue_rotation", "--min-time", "0", "--min-reps",
+              "1", "--max-reps", "2", "--out", str(out)])
+  rows = [json.loads(line) for line in out.read_text().splitlines()]
+  assert [r["name"] for r in rows] == ["none", "drq", "examples.augmentations:hue_rotation"]
+  assert all(r["median_ms"] > 0 and r["pair_median_ms"] > 0 for r in rows)
+  assert "`examples.augmentations:hue_rotation`" in (tmp_path / "augment.md").read_text()
+  with pytest.raises(SystemExit):
+    bench.main(["--names", "none", "--aug", "no_such_module:fn", "--out", str(out)])
