@@ -233,3 +233,6 @@ def test_several_augmentations_are_compared_side_by_side_with_the_papers_rows(tm
   # One augmentation: the mean row, and the paper row only for its method.
   single = ev.markdown(_summary(("drq",)))
   assert "**mean**" in single and "SAC+CJ+AUG" not in single and "paper, SAC+AUG" in single
+  # One seed per augmentation: the agent rows are the means; no mean over augmentations.
+  one_seed = ev.markdown(_summary(("drq", "cj+drq"), seeds=(0,)))
+  assert "**" not in one_seed.split("Paper rows")[0]

@@ -340,7 +340,7 @@ def markdown(summary: dict) -> str:
   """The results as the paper's Table 4 (returns per condition) plus train and E_G.
 
   Rows: every agent; the mean over agents (per augmentation when the run trained
-  several); the paper's row for each method it has. A second table gives E_G per
+  several, if one has several seeds); the paper's row for each method it has. A second table gives E_G per
   condition for those means and the paper's rows, augmentations side by side.
   """
   conditions = summary["conditions"]
@@ -372,13 +372,13 @@ def markdown(summary: dict) -> str:
     means = {c: r["conditions"][c]["mean"] for c in conditions}
     lines.append(line(f"seed {r['seed']}, {_label(r)}", r["train"]["mean"], means,
                       r["conditions"][last]["e_g"]))
-  if len(groups) > 1:
+  if len(groups) == 1 and len(summary["agents"]) > 1:
+    m = summary["mean"]
+    lines.append(line("**mean**", m["train"], m["conditions"], m["e_g"][last]))
+  elif 1 < len(groups) < len(summary["agents"]):
     for g in groups:
       lines.append(line(f"**{g['label']}** (mean of {len(g['agents'])})", g["train"],
                         g["conditions"], g["e_g"][last]))
-  elif len(summary["agents"]) > 1:
-    m = summary["mean"]
-    lines.append(line("**mean**", m["train"], m["conditions"], m["e_g"][last]))
   papers = [g for g in groups if g["paper"] is not None]
   lines += [paper_line(g) for g in papers]
   if papers:
