@@ -121,6 +121,18 @@ class Report:
     """True when no property failed."""
     return not self.failed
 
+  def paragraph(self) -> str:
+    """The failures in one paragraph (for command-line errors)."""
+    if self.ok:
+      return f"augmentation {self.augmentation!r} passes every property"
+    fails = "; ".join(f"{r.name} ({r.detail})" for r in self.results
+                      if r.status == "fail")
+    return (f"augmentation {self.augmentation!r} fails dmcr_jax.augment.check on real "
+            f"observations {'×'.join(map(str, self.shape))} uint8: {fails}. See every "
+            f"property with: python -c \"from dmcr_jax import augment; "
+            f"print(augment.check({self.augmentation!r}, size={self.shape[1]}, "
+            "raise_error=False))\"")
+
   def __str__(self) -> str:
     head = (f"augmentation {self.augmentation!r} on real observations "
             f"{'×'.join(map(str, self.shape))} uint8: ")
@@ -128,7 +140,7 @@ class Report:
              f"fails {', '.join(self.failed)}")
     lines = [head]
     for r in self.results:
-      lines.append(f"  {r.status:4s}  {r.name:13s}" + (f"  {r.detail}" if r.detail else ""))
+      lines.append((f"  {r.status:4s}  {r.name:13s}  {r.detail}").rstrip())
     return "\n".join(lines)
 
 

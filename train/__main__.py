@@ -192,9 +192,16 @@ def check_own_augmentations(cfg: TrainConfig) -> None:
   `--aug` that is not built in (imported or registered); ValueError with one
   paragraph naming what fails."""
   from dmcr_jax import augment
-  from dmcr_jax.augment_check import AugmentationCheckError
+  from dmcr_jax.augment_check import AugmentationCheckError, observations
   own = dict.fromkeys(part for name in cfg.sac.aug_names for part in name.split("+")
                       if part not in augment.NAMES)
+  if own:
+    try:
+      observations(cfg.image_size)  # rendered once per size, then cached
+    except Exception as e:  # noqa: BLE001 - MuJoCo/GL errors have many types
+      raise ValueError(f"--aug: the augmentation checker could not render its "
+                       f"observations ({type(e).__name__}: {e}); MuJoCo needs a GL "
+                       "backend (MUJOCO_GL=egl or osmesa)") from None
   for part in own:
     try:
       augment.check(part, size=cfg.image_size)
