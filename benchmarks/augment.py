@@ -8,9 +8,14 @@ One JSON line per augmentation goes to ``--out`` (default
 ``benchmarks/results/augment_<device>.jsonl``, e.g. ``augment_cpu.jsonl``,
 ``augment_h100.jsonl``) and a Markdown table next to it (same name, ``.md``).
 
+``--aug`` adds your own augmentations beside them: registered names or
+``package.module:function`` import paths (`dmcr_jax.augment.load`), e.g.
+``--aug examples.augmentations:hue_rotation,examples.augmentations:hue_rotation+drq``.
+
 Usage::
 
     python -m benchmarks.augment [--batch 256] [--out PATH] [--names drq,cj+drq]
+                                 [--aug package.module:function]
 """
 
 from __future__ import annotations
@@ -121,6 +126,10 @@ def main(argv=None):
   parser.add_argument("--stack", type=int, default=3)
   parser.add_argument("--names", default=",".join(augment.NAMES),
                       help="comma-separated names (default: all of augment.NAMES)")
+  parser.add_argument("--aug", default="",
+                      help="comma-separated augmentations of your own to time after "
+                           "--names: package.module:function import paths (or "
+                           "'+'-compositions with built-ins)")
   parser.add_argument("--min-time", type=float, default=1.0,
                       help="seconds of timed calls per measurement (at least)")
   parser.add_argument("--min-reps", type=int, default=5)
@@ -129,6 +138,12 @@ def main(argv=None):
                       help="JSONL path (default: "
                            "benchmarks/results/augment_<device>.jsonl)")
   args = parser.parse_args(argv)
+  names = [n for n in args.names.split(",") + args.aug.split(",") if n]
+  for name in names:  # import and validate every name before timing anything
+    try:
+      augment.get(name)
+    except ValueError as e:
+      parser.error(str(e))
 
   out = args.out or os.path.join("benchmarks", "results",
                                  f"augment_{device_slug(jax.devices()[0])}.jsonl")
@@ -136,7 +151,7 @@ def main(argv=None):
   rows = []
   stamp = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
   with open(out, "w") as f:
-    for name in args.names.split(","):
+    for name in names:
       row = bench_one(name, args.batch, args.size, args.stack, args.min_time,
                       args.min_reps, args.max_reps)
       row.update(cpu_count=os.cpu_count(), time_utc=stamp)

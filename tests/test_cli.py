@@ -90,3 +90,29 @@ def test_help_shows_defaults_and_choices():
   for want in ("held-out looks per condition (default: 100)", "--renderer {pool,jax}",
                "(default: 3)"):
     assert want in text, want
+
+
+def test_train_imports_and_checks_your_augmentation_before_compiling(tmp_path):
+  out = str(tmp_path / "run")
+  (tmp_path / "my_augs.py").write_text(
+      "import jax.numpy as jnp\n\n\ndef to_float(key, x):\n  return x.astype(jnp.float32)\n")
+  path = os.pathsep.join(p for p in (os.environ.get("PYTHONPATH"), str(tmp_path)) if p)
+  for aug, match in (("no_such_module:fn", "cannot import module 'no_such_module'"),
+                     ("my_augs:missing", "has no attribute 'missing'; its functions: "
+                                         "to_float"),
+                     ("drq,my_augs:to_float+drq", "fails dmcr_jax.augment.check on real "
+                                                  "observations 12×32×32×9 uint8: uint8")):
+    code, _, stderr = run(["-m", "train", "--out", out, "--steps", "10", "--image-size",
+                           "32", "--aug", aug], timeout=180, PYTHONPATH=path)
+    assert_clean_error(code, stderr, "train", match)
+    assert not os.path.exists(out)
+
+
+def test_train_takes_an_import_path_beside_the_builtins():
+  from train.__main__ import parse
+  cfg, _ = parse(["--task", "cartpole-balance", "--image-size", "32",
+                  "--aug", "drq,cj+drq,examples.augmentations:hue_rotation+drq"])
+  assert cfg.sac.aug_names == ("drq", "cj+drq", "examples.augmentations:hue_rotation+drq")
+  assert cfg.out_dir == ("runs/cartpole-balance-drq_cj+drq_"
+                         "examples.augmentations.hue_rotation+drq")
+  assert [aug for _, aug in cfg.agents()] == list(cfg.sac.aug_names)

@@ -1,5 +1,6 @@
 """The zero-shot evaluation (train/evaluate.py) on a tiny, untrained checkpoint."""
 
+import dataclasses
 import json
 import os
 
@@ -179,3 +180,59 @@ def test_eval_json_is_valid_json_when_e_g_is_undefined(run_dir, tmp_path, monkey
     saved = json.loads(f.read(), parse_constant=lambda c: pytest.fail(f"invalid JSON: {c}"))
   assert saved["agents"][0]["conditions"]["none"]["e_g"] is None
   assert saved["mean"]["e_g"]["none"] is None
+
+
+def _summary(augs, seeds=(0, 1), task="cartpole-balance"):
+  """A synthetic `evaluate` summary: agent returns 100·(agent + 1) − 10·condition."""
+  from train import paper_results
+  conditions = list(ev.conditions_for(task))
+  agents = []
+  for a, (aug, seed) in enumerate((aug, seed) for aug in augs for seed in seeds):
+    train = 100.0 * (a + 1)
+    cells = {c: dict(mean=train - 10 * k, e_g=ev.generalization_error(train, train - 10 * k))
+             for k, c in enumerate(conditions)}
+    agents.append(dict(agent=a, seed=seed, aug=aug, algo="sac_aug",
+                       method=paper_results.method_name("sac_aug", aug),
+                       train=dict(mean=train), conditions=cells))
+  summary = dict(run_dir="runs/x", task=task, checkpoint_step=7, conditions=conditions,
+                 config=dataclasses.asdict(TINY), train_look="0", agents=agents, wall_s=1.0)
+  summary["mean"] = ev._mean_row(agents, conditions)
+  summary["augs"] = ev.aug_groups(summary)
+  return summary
+
+
+def test_several_augmentations_are_compared_side_by_side_with_the_papers_rows(tmp_path):
+  mine = "examples.augmentations:hue_rotation+drq"
+  summary = _summary(("drq", "cj+drq", mine))
+  groups = summary["augs"]
+  assert [g["label"] for g in groups] == ["drq", "cj+drq", mine]
+  assert [g["agents"] for g in groups] == [[0, 1], [2, 3], [4, 5]]
+  # Means over each augmentation's seeds; E_G of those means.
+  assert groups[1]["train"] == pytest.approx(350.0)
+  assert groups[1]["conditions"]["all"] == pytest.approx(350.0 - 60)
+  assert groups[1]["e_g"]["all"] == pytest.approx(60 / 350)
+  # The paper's rows where it has the method: Table 4, "None" as its train return.
+  assert groups[0]["method"] == "SAC+AUG" and groups[2]["paper"] is None
+  paper = groups[1]["paper"]
+  assert paper["returns"]["all"] == 358.6
+  assert paper["e_g"]["all"] == pytest.approx((984.2 - 358.6) / 984.2)
+
+  table = ev.markdown(summary)
+  assert table.count("| seed ") == 6 and "**mean**" not in table
+  for g in groups:
+    assert f"| **{g['label']}** (mean of 2) | {g['train']:.1f} |" in table
+  assert "| paper, SAC+AUG | 987.4 | 987.4 |" in table
+  assert "| paper, SAC+CJ+AUG | 984.2 | 984.2 |" in table
+  e_g_head = "| augmentation | train | " + " | ".join(summary["conditions"]) + " |"
+  e_g_rows = table.split(e_g_head)[1].strip().splitlines()[1:]
+  assert [r.split(" | ")[0] for r in e_g_rows] == [
+      "| drq", "| cj+drq", f"| {mine}", "| paper, SAC+AUG", "| paper, SAC+CJ+AUG"]
+  assert e_g_rows[1].endswith(f"| {100 * 60 / 350:.1f} % |")
+  ev.plot(summary, str(tmp_path / "eval.png"))
+  assert os.path.getsize(tmp_path / "eval.png") > 0
+  # One augmentation: the mean row, and the paper row only for its method.
+  single = ev.markdown(_summary(("drq",)))
+  assert "**mean**" in single and "SAC+CJ+AUG" not in single and "paper, SAC+AUG" in single
+  # One seed per augmentation: the agent rows are the means; no mean over augmentations.
+  one_seed = ev.markdown(_summary(("drq", "cj+drq"), seeds=(0,)))
+  assert "**" not in one_seed.split("Paper rows")[0]

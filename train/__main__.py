@@ -19,6 +19,12 @@ default) steps small batches' physics on the host CPU, beside the learner's
 updates on the accelerator (`train.loop`). `--quality` and `--workers` belong to
 the default CPU render pool (`--renderer pool`).
 
+`--aug` also takes your own augmentation as `package.module:function` (e.g.
+`examples.augmentations:hue_rotation+drq`, a function of ONE uint8 sample, see
+`dmcr_jax.augment.from_function`): it is imported, from the current directory
+first, and must pass `dmcr_jax.augment.check` at the run's image size before
+anything is compiled.
+
 `--algo` picks the learner (`train.sac.ALGOS`); unset options take its defaults
 (`train.sac.ALGO_DEFAULTS`: CURL renders at 100 and crops to 84 and takes no
 `--aug`; SAC+AE uses batch 128 and no augmentation unless `--aug` names one).
@@ -58,9 +64,11 @@ def build_parser() -> argparse.ArgumentParser:
   p.add_argument("--task", default=d.task, help="a DMCR task")
   p.add_argument("--algo", default=s.algo, choices=ALGOS, help="learner")
   p.add_argument("--aug", default=None,
-                 help="augmentation name, e.g. drq, cj+drq, nr+drq; comma-separated "
-                      "names train one agent per name and seed (default: drq for "
-                      "sac_aug, none for sac_ae; curl takes none)")
+                 help="augmentation name, e.g. drq, cj+drq, nr+drq, or your own as "
+                      "package.module:function (e.g. examples.augmentations:"
+                      "hue_rotation+drq); comma-separated names train one agent per "
+                      "name and seed (default: drq for sac_aug, none for sac_ae; curl "
+                      "takes none)")
   p.add_argument("--lr", type=float, default=None,
                  help="learning rate of the critic, actor and encoder (default 1e-3; "
                       "2e-4 for curl on cheetah)")
@@ -179,9 +187,32 @@ def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
     if a.resume:
       cfg = resumed_config(cfg, explicit_flags(argv))
     check_config(cfg)
+    check_own_augmentations(cfg)
   except (ValueError, FileNotFoundError) as e:
     p.error(str(e))
   return cfg, a
+
+
+def check_own_augmentations(cfg: TrainConfig) -> None:
+  """Runs `dmcr_jax.augment.check` at the run's image size on every part of
+  `--aug` that is not built in (imported or registered); ValueError with one
+  paragraph naming what fails."""
+  from dmcr_jax import augment
+  from dmcr_jax.augment_check import AugmentationCheckError, observations
+  own = dict.fromkeys(part for name in cfg.sac.aug_names for part in name.split("+")
+                      if part not in augment.NAMES)
+  if own:
+    try:
+      observations(cfg.image_size)  # rendered once per size, then cached
+    except Exception as e:  # noqa: BLE001 - MuJoCo/GL errors have many types
+      raise ValueError(f"--aug: the augmentation checker could not render its "
+                       f"observations ({type(e).__name__}: {e}); MuJoCo needs a GL "
+                       "backend (MUJOCO_GL=egl or osmesa)") from None
+  for part in own:
+    try:
+      augment.check(part, size=cfg.image_size)
+    except AugmentationCheckError as e:
+      raise ValueError(f"--aug: {e.report.paragraph()}") from None
 
 
 def resumed_config(cli: TrainConfig, given: set[str]) -> TrainConfig:
@@ -212,7 +243,7 @@ def resumed_config(cli: TrainConfig, given: set[str]) -> TrainConfig:
 
 def default_out(task: str, sac_cfg: SACConfig) -> str:
   """runs/<task>-<aug> for SAC+AUG, runs/<task>-<algo>[-<aug>] otherwise."""
-  aug = sac_cfg.aug.replace(",", "_")
+  aug = sac_cfg.aug.replace(",", "_").replace(":", ".")
   if sac_cfg.algo == "sac_aug":
     return f"runs/{task}-{aug}"
   return f"runs/{task}-{sac_cfg.algo}" + ("" if aug == "none" else f"-{aug}")

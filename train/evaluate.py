@@ -21,7 +21,11 @@ that batch runs once.
 
 The generalisation error of a condition is E_G = (train − test) / train (paper
 Sec. 3). Outputs: a JSON file, a Markdown table laid out like the paper's Table 4
-(with the paper's row for the task and method when it has one) and a bar chart.
+(with the paper's row for the task and each method when it has one) and a bar
+chart. A run that trained several augmentations (``train --aug drq,cj+drq,mine+drq``)
+is compared side by side: per augmentation the mean over its seeds, each
+condition's return and E_G, beside the paper's rows (``"augs"`` in the JSON; one
+row per augmentation in both tables; grouped bars in the chart).
 
     evaluate runs/cartpole-balance-drq            # or: python -m train.evaluate …
     evaluate runs/cartpole-balance-drq --invariance --attention --video
@@ -270,6 +274,7 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
                  train_look=str(train_cfg.visual_seeds), agents=results,
                  wall_s=time.perf_counter() - t_start)
   summary["mean"] = _mean_row(results, conditions)
+  summary["augs"] = aug_groups(summary)
   with open(os.path.join(out_dir, "eval.json"), "w") as f:
     json.dump(loop.json_safe(summary), f, indent=1, allow_nan=False)  # NaN E_G → null
   with open(os.path.join(out_dir, "eval.md"), "w") as f:
@@ -295,13 +300,34 @@ def _label(row: dict) -> str:
   return algo if aug == "none" else f"{algo}, {aug}"
 
 
-def _paper_row(summary: dict) -> tuple[str, dict] | None:
-  methods = {r.get("method") for r in summary["agents"]}
-  if len(methods) != 1:
-    return None
-  method = methods.pop()
-  row = paper_results.table4(summary["task"], method) if method else None
-  return None if row is None else (method, row)
+def aug_groups(summary: dict) -> list[dict]:
+  """The agents grouped by augmentation (by algorithm and augmentation), in run order.
+
+  Args:
+    summary: `evaluate`'s results (its "agents", "conditions" and "task").
+
+  Returns:
+    One dict per group: label (`_label`), aug, method (the paper's name or None),
+    agents (indices), seeds, `_mean_row`'s train / conditions / e_g over its
+    agents, and paper: the paper's Table 4 row for the task and method as
+    {"returns": {condition: return}, "e_g": {condition: E_G}} (its "None"
+    column taken as the train return), or None.
+  """
+  conditions = summary["conditions"]
+  groups: dict[str, list[dict]] = {}
+  for r in summary["agents"]:
+    groups.setdefault(_label(r), []).append(r)
+  out = []
+  for label, rows in groups.items():
+    method = rows[0].get("method")
+    table = paper_results.table4(summary["task"], method) if method else None
+    paper = None if table is None else dict(
+        returns=table, e_g={c: generalization_error(table["none"], table[c])
+                            for c in conditions if c in table})
+    out.append(dict(label=label, aug=rows[0]["aug"], method=method,
+                    agents=[r["agent"] for r in rows], seeds=[r["seed"] for r in rows],
+                    **_mean_row(rows, conditions), paper=paper))
+  return out
 
 
 def _render_words(cfg: dict) -> str:
@@ -311,9 +337,15 @@ def _render_words(cfg: dict) -> str:
 
 
 def markdown(summary: dict) -> str:
-  """The results as the paper's Table 4 (returns per condition) plus train and E_G."""
+  """The results as the paper's Table 4 (returns per condition) plus train and E_G.
+
+  Rows: every agent; the mean over agents (per augmentation when the run trained
+  several, if one has several seeds); the paper's row for each method it has. A second table gives E_G per
+  condition for those means and the paper's rows, augmentations side by side.
+  """
   conditions = summary["conditions"]
   cfg = summary["config"]
+  groups = summary.get("augs") or aug_groups(summary)
   head = ["agent", "train"] + conditions + ["E_G (all)" if "all" in conditions else "E_G"]
   lines = [f"Zero-shot evaluation of `{summary['run_dir']}` ({summary['task']}, checkpoint "
            f"step {summary['checkpoint_step']:,}): train = mean return over "
@@ -324,57 +356,97 @@ def markdown(summary: dict) -> str:
            f"{summary['wall_s']:.0f} s.", "",
            "| " + " | ".join(head) + " |", "|---|" + "---:|" * (len(head) - 1)]
   last = "all" if "all" in conditions else conditions[-1]
+  pct = lambda e: f"{100 * e:.1f} %" if e is not None and np.isfinite(e) else "–"
 
   def line(label, train, means, e_g):
     cells = [label, f"{train:.1f}"] + [f"{means[c]:.1f}" for c in conditions]
-    cells.append(f"{100 * e_g:.1f} %" if np.isfinite(e_g) else "–")
-    return "| " + " | ".join(cells) + " |"
+    return "| " + " | ".join(cells + [pct(e_g)]) + " |"
+
+  def paper_line(g):
+    row = g["paper"]["returns"]
+    cells = [f"paper, {g['method']}", f"{row['none']:.1f}"]
+    cells += [f"{row[c]:.1f}" if c in row else "–" for c in conditions]
+    return "| " + " | ".join(cells + [pct(g["paper"]["e_g"].get(last))]) + " |"
 
   for r in summary["agents"]:
     means = {c: r["conditions"][c]["mean"] for c in conditions}
     lines.append(line(f"seed {r['seed']}, {_label(r)}", r["train"]["mean"], means,
                       r["conditions"][last]["e_g"]))
-  if len(summary["agents"]) > 1:
+  if len(groups) == 1 and len(summary["agents"]) > 1:
     m = summary["mean"]
     lines.append(line("**mean**", m["train"], m["conditions"], m["e_g"][last]))
-  paper = _paper_row(summary)
-  if paper is not None:
-    method, row = paper
-    cells = [f"paper, {method}", f"{row['none']:.1f}"]
-    cells += [f"{row[c]:.1f}" if c in row else "–" for c in conditions]
-    cells.append(f"{100 * generalization_error(row['none'], row['all']):.1f} %"
-                 if last == "all" else "–")
-    lines.append("| " + " | ".join(cells) + " |")
-    lines += ["", f"The paper row is its Table 4 (five runs; its \"None\" column, shown "
+  elif 1 < len(groups) < len(summary["agents"]):
+    for g in groups:
+      lines.append(line(f"**{g['label']}** (mean of {len(g['agents'])})", g["train"],
+                        g["conditions"], g["e_g"][last]))
+  papers = [g for g in groups if g["paper"] is not None]
+  lines += [paper_line(g) for g in papers]
+  if papers:
+    lines += ["", f"Paper rows are its Table 4 (five runs; its \"None\" column, shown "
                   "under both train and none)."]
+  lines += ["", "E_G per condition (mean return of each "
+            + ("augmentation's agents" if len(groups) > 1 else "agent set")
+            + "; paper: from its Table 4 with \"None\" as train):", "",
+            "| " + " | ".join(["augmentation", "train"] + conditions) + " |",
+            "|---|" + "---:|" * (len(conditions) + 1)]
+  for g in groups:
+    cells = [g["label"], f"{g['train']:.1f}"] + [pct(g["e_g"][c]) for c in conditions]
+    lines.append("| " + " | ".join(cells) + " |")
+  for g in papers:
+    row = g["paper"]
+    cells = [f"paper, {g['method']}", f"{row['returns']['none']:.1f}"]
+    cells += [pct(row["e_g"].get(c)) for c in conditions]
+    lines.append("| " + " | ".join(cells) + " |")
   return "\n".join(lines) + "\n"
 
 
 def plot(summary: dict, png_path: str) -> None:
-  """Bar chart: mean return per condition (dots: agents; line: train; ×: paper)."""
+  """Grouped bars, one colour per augmentation: mean return at the training look
+  and per condition (dots: agents; ×: the paper's row), and E_G per condition."""
   import matplotlib
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt
   conditions = summary["conditions"]
-  x = np.arange(len(conditions))
-  m = summary["mean"]
-  fig, ax = plt.subplots(figsize=(1.0 + 0.9 * len(conditions), 3.6))
-  ax.bar(x, [m["conditions"][c] for c in conditions], color="#4c72b0", alpha=0.8,
-         label="mean over agents")
-  for r in summary["agents"]:
-    ax.plot(x, [r["conditions"][c]["mean"] for c in conditions], "k.", alpha=0.6)
-  ax.axhline(m["train"], color="#dd8452", lw=1.5, label=f"train ({m['train']:.0f})")
-  paper = _paper_row(summary)
-  if paper is not None:
-    method, row = paper
-    ax.plot([i for i, c in enumerate(conditions) if c in row],
-            [row[c] for c in conditions if c in row], "rx", ms=8, label=f"paper {method}")
-  ax.set_xticks(x, conditions, rotation=30)
+  groups = summary.get("augs") or aug_groups(summary)
+  columns = ["train"] + list(conditions)
+  x = np.arange(len(columns))
+  width = 0.8 / len(groups)
+  colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+  fig, (ax, ax_e) = plt.subplots(1, 2, figsize=(2.0 + 1.5 * len(columns), 3.8),
+                                 gridspec_kw=dict(width_ratios=(len(columns),
+                                                                len(conditions))))
+  for k, g in enumerate(groups):
+    color, dx = colors[k % len(colors)], (k - (len(groups) - 1) / 2) * width
+    means = [g["train"]] + [g["conditions"][c] for c in conditions]
+    ax.bar(x + dx, means, width, color=color, alpha=0.8,
+           label=f"{g['label']} ({len(g['agents'])})")
+    for a in g["agents"]:
+      r = next(r for r in summary["agents"] if r["agent"] == a)
+      ax.plot(x + dx, [r["train"]["mean"]] + [r["conditions"][c]["mean"] for c in conditions],
+              "k.", ms=4, alpha=0.6, ls="none")
+    ax_e.bar(np.arange(len(conditions)) + dx, [g["e_g"][c] for c in conditions], width,
+             color=color, alpha=0.8)
+    if g["paper"] is not None:
+      row = g["paper"]["returns"]
+      ax.plot(np.array([i for i, c in enumerate(columns) if c in row or c == "train"]) + dx,
+              [row["none"] if c == "train" else row[c] for c in columns
+               if c in row or c == "train"],
+              "X", color=color, mec="k", ms=8, mew=0.8, ls="none",
+              label=f"paper {g['method']}")
+      ax_e.plot([i + dx for i, c in enumerate(conditions) if c in row],
+                [g["paper"]["e_g"][c] for c in conditions if c in row],
+                "X", color=color, mec="k", ms=8, mew=0.8, ls="none")
+  ax.set_xticks(x, columns, rotation=30)
   ax.set_ylabel("mean episode return")
   ax.set_title(f"{summary['task']}: zero-shot returns per visual condition", fontsize=10)
-  ax.legend(fontsize=8, loc="lower left")
+  ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(0, -0.22), ncol=2,
+            frameon=False)
+  ax_e.set_xticks(np.arange(len(conditions)), conditions, rotation=30)
+  ax_e.axhline(0, color="k", lw=0.8)
+  ax_e.set_ylabel("E_G = (train − test) / train")
+  ax_e.set_title("generalisation error (×: paper)", fontsize=10)
   fig.tight_layout()
-  fig.savefig(png_path, dpi=100)
+  fig.savefig(png_path, dpi=100, bbox_inches="tight")
   plt.close(fig)
 
 
