@@ -7,8 +7,10 @@ envs, bfloat16, dm_control's exact look, no intermediate checkpoints), into a
 fresh run folder, and reports: the wall time of the training loop (compilation
 included, as `train` reports it) and of the whole run (env start-up too),
 transitions per second per agent, the first training step (and its loop time)
-at which an episode's return reached ``--threshold``, and the final return
-(mean of the last episodes, as `train` computes it).
+at which an episode's return reached ``--threshold``, the final return
+(mean of the last episodes, as `train` computes it), and, with the host driver,
+where the loop's time went (summary.json's "host_seconds": act, learn, the env's
+step_async and step_wait, store; "env_seconds": the env's own parts).
 
 The baseline in the same run: the learner alone (`benchmarks.learner`'s scanned
 updates of the same agents, batch, dtype and augmentation on full random
@@ -126,6 +128,7 @@ def run(train_argv: list[str], threshold: float, run_dir: str, baseline: bool = 
       episodes=len(log_rows), final_return=sum(finals) / len(finals) if finals else None,
       threshold=threshold, step_at_threshold=hit and hit["step"],
       time_to_threshold_s=hit and hit["wall_s"], interrupted=summary["interrupted"],
+      host_seconds=summary.get("host_seconds"), env_seconds=summary.get("env_seconds"),
       train_args=list(train_argv), run_dir=run_dir,
       time_utc=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"))
 

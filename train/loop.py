@@ -491,6 +491,18 @@ class RunLog:
       self._bar = tqdm(total=cfg.steps, initial=start, desc=cfg.task, unit="step")
     self.t0 = time.perf_counter()
     self.recent: list[float] = []
+    self.host_s: dict[str, float] = {}
+    self.env_s: dict[str, float] = {}
+
+  @contextlib.contextmanager
+  def timed(self, part: str):
+    """Adds the seconds the block takes to `host_s[part]`: the host driver's
+    breakdown of its loop (summary.json's "host_seconds")."""
+    t = time.perf_counter()
+    try:
+      yield
+    finally:
+      self.host_s[part] = self.host_s.get(part, 0.0) + time.perf_counter() - t
 
   @property
   def stopped(self) -> bool:
@@ -563,6 +575,8 @@ def finish(cfg: TrainConfig, step: int, log: RunLog) -> dict:
   summary = dict(task=cfg.task, seeds=list(cfg.seeds), augs=list(cfg.sac.aug_names),
                  steps=step, num_envs=cfg.num_envs, interrupted=log.stopped,
                  wall_s=log.wall(),
+                 **({"host_seconds": log.host_s, "env_seconds": log.env_s}
+                    if log.host_s else {}),
                  final_return=plot_learning_curve(log.path, os.path.join(
                      cfg.out_dir, "learning_curve.png"), specs))
   with open(os.path.join(cfg.out_dir, "summary.json"), "w") as f:
@@ -615,7 +629,9 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
   Writes `<out_dir>/config.json`, `<out_dir>/log.csv` (one row per finished
   episode: step, agent, seed, augmentation, return, wall time, transitions/s and
   the latest update metrics), `<out_dir>/learning_curve.png`,
-  `<out_dir>/summary.json` and the checkpoints. With the JAX renderer and the
+  `<out_dir>/summary.json` (with the host driver also the seconds its loop spent
+  in each part, "host_seconds", and in the env's parts, "env_seconds") and the
+  checkpoints. With the JAX renderer and the
   physics on the learner's device the run is `train.device_loop.train` (same
   outputs).
 
@@ -669,25 +685,32 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
       while True:
         acting = acted < cfg.steps and not log.stopped
         if acting:  # group g acts and steps; the updates owed run meanwhile
-          o, f = put(obs[g]), put(first[g])
-          learner, action, env_action = train_step.act_jit(learner, o, spec=spec, mesh=mesh)
-          env_action = np.asarray(env_action)
+          with log.timed("act"):  # includes waiting for the updates queued before
+            o, f = put(obs[g]), put(first[g])
+            learner, action, env_action = train_step.act_jit(learner, o, spec=spec,
+                                                             mesh=mesh)
+            env_action = np.asarray(env_action)
           # Dispatched before the physics when it steps elsewhere (the host CPU),
           # after it when it shares their device (it then leaves the queue first,
           # and the CPU renders while the updates run).
           if not physics_first:
-            learner, owed, ready = learn(learner, owed, ready, acted)
-          envs[g].step_async(env_action)
+            with log.timed("learn"):
+              learner, owed, ready = learn(learner, owed, ready, acted)
+          with log.timed("env_step_async"):
+            envs[g].step_async(env_action)
           if physics_first:
-            learner, owed, ready = learn(learner, owed, ready, acted)
+            with log.timed("learn"):
+              learner, owed, ready = learn(learner, owed, ready, acted)
           in_flight[g] = (o, f, action)
           acted += n
         g = (g + 1) % groups  # the group stepped longest ago finishes and acts next
         if g in in_flight:
-          next_obs, reward, _, truncated, info = envs[g].step_wait()
+          with log.timed("env_step_wait"):
+            next_obs, reward, _, truncated, info = envs[g].step_wait()
           o, f, action = in_flight.pop(g)
-          learner = train_step.store_jit(learner, o, f, action, put(reward), spec=spec,
-                                         mesh=mesh, group=g)
+          with log.timed("store"):
+            learner = train_step.store_jit(learner, o, f, action, put(reward), spec=spec,
+                                           mesh=mesh, group=g)
           before, stored = stored, stored + n
           obs[g], first[g] = next_obs, info["episode_step"] == 0
           wall = log.wall()
@@ -701,6 +724,8 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
             _save(manager, stored, learner.agents, learner.key)
         if not acting and not in_flight:
           break
+      log.env_s = {part: sum(env.timings[part] for env in envs)
+                   for part in envs[0].timing_parts}
       if manager.latest_step() != stored:
         _save(manager, stored, learner.agents, learner.key)
     finally:
