@@ -339,20 +339,24 @@ def load_config(out_dir: str) -> TrainConfig:
 
 
 def init_agents(cfg: TrainConfig, obs_shape, action_size: int) -> sac.AgentState:
-  """Fresh agents for `cfg.agents()`, stacked along a leading agent axis."""
+  """Fresh agents for `cfg.agents()`, stacked along a leading agent axis.
+
+  Each agent is initialised by its own call of one jitted function (its seed and
+  augmentation index are arguments, so one compilation serves them all): the
+  K agents' initialisations vmapped into one XLA:CPU program never finished on a
+  2-core machine (every thread waiting), while one agent's always does.
+  """
   aug_index = {name: i for i, name in enumerate(cfg.sac.aug_names)}
-  specs = cfg.agents()
-  return _init_agents(jnp.asarray([seed for seed, _ in specs]),
-                      jnp.asarray([aug_index[a] for _, a in specs]),
-                      tuple(obs_shape), int(action_size), cfg.sac)
+  agents = [_init_agent(jnp.asarray(seed), jnp.asarray(aug_index[aug]), tuple(obs_shape),
+                        int(action_size), cfg.sac)
+            for seed, aug in cfg.agents()]
+  return jax.tree.map(lambda *x: jnp.stack(x), *agents)
 
 
 @functools.partial(jax.jit, static_argnums=(2, 3, 4))
-def _init_agents(seeds, aug_indices, obs_shape, action_size, config):
-  # Jitted: one compilation instead of op-by-op dispatch (about twice as fast on CPU;
-  # the same values).
-  return jax.vmap(lambda s, i: sac.init_agent(jax.random.key(s), obs_shape, action_size,
-                                              config, i))(seeds, aug_indices)
+def _init_agent(seed, aug_index, obs_shape, action_size, config):
+  # Jitted: one compilation instead of op-by-op dispatch (the same values).
+  return sac.init_agent(jax.random.key(seed), obs_shape, action_size, config, aug_index)
 
 
 def load_run(out_dir: str, step: int | None = None):
