@@ -446,8 +446,8 @@ def initial_state(cfg: TrainConfig, manager, resume: bool, obs_shape, action_siz
 
 PROGRESS_FRACTION = 0.02
 """`RunLog.due` reports progress at least every this fraction of a run's steps,
-whatever `log_every` says (a CPU run of 600 steps with log_every 1,000 showed
-nothing until its end)."""
+whatever `log_every` says, so a run shorter than `log_every` still shows
+progress."""
 
 
 def progress_every(cfg: TrainConfig) -> int:

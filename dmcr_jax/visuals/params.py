@@ -323,9 +323,8 @@ def sample(domain: str, seeds: Any, vary: str | Iterable[str] | None = "all", *,
            num_backgrounds: int = NUM_BACKGROUNDS) -> VisualParams:
   """Builds the `VisualParams` of a batch of visual seeds.
 
-  Jittable (seeds may be traced; the configuration is static) and fast: the
-  draws are a vmapped threefry computation (100,000 seeds take a few tens of
-  milliseconds on a CPU once compiled).
+  Jittable (seeds may be traced; the configuration is static): the draws are a
+  vmapped threefry computation.
 
   Args:
     domain: a DMCR domain ("walker") or task name ("walker-walk").

@@ -97,9 +97,9 @@ def shift_stacks(out: np.ndarray, prev: np.ndarray) -> None:
 
   Flat, each byte of `prev` goes 3 places back: every pixel's later frames land
   where its earlier ones were, and its newest frame's 3 channels receive the next
-  pixel's oldest frame, which the caller then overwrites with the new frame. The
-  strided copy (6 bytes of every 9) took 145 ms for 1,024 84×84 stacks of 3 in
-  one process on the H100 box; contiguous, it is a memmove.
+  pixel's oldest frame, which the caller then overwrites with the new frame. A
+  strided copy would touch 6 bytes of every 9; contiguous, it is a memmove
+  (benchmarks/results/env_h100.md compares the two).
 
   Args:
     out, prev: C-contiguous uint8 (n, H, W, 3·k) stacks, distinct buffers.

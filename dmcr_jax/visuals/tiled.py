@@ -93,9 +93,9 @@ class TiledRenderer:
     self.buffer_size = (bw, bh)
     apply_quality(model, quality)
     _, shadows, reflections = QUALITY[quality]
-    # MuJoCo's (multisampled) offscreen buffer only ever holds one frame: sized
-    # to the frame it renders 20% faster on an H100 with 16 processes than sized
-    # to the tile buffer (benchmarks/results/render_variants_h100.md).
+    # MuJoCo's (multisampled) offscreen buffer only ever holds one frame, so it is
+    # sized to the frame, not to the tile buffer, which renders faster
+    # (benchmarks/results/render_variants_h100.md).
     model.vis.global_.offwidth, model.vis.global_.offheight = self.width, self.height
     self._gl = mujoco.GLContext(max(bw, 1), max(bh, 1))
     self._gl.make_current()
