@@ -61,6 +61,8 @@ import numpy as np
 from flax import struct
 from mujoco import mjx
 
+from dmcr_jax.models.names import compile_suite_model, field_id
+
 Info = dict[str, jax.Array]
 
 # Line-search cap (MJX runs the line search as a fixed-length scan); see above.
@@ -133,11 +135,6 @@ class TaskSpec:
     return f"{self.domain}-{self.task}"
 
 
-def _suite_module(domain: str):
-  import importlib
-  return importlib.import_module(f"dm_control.suite.{domain}")
-
-
 def load_mj_model(spec: TaskSpec) -> mujoco.MjModel:
   """Compiles dm_control's suite MJCF for `spec.domain` and applies MJX fixes.
 
@@ -145,8 +142,7 @@ def load_mj_model(spec: TaskSpec) -> mujoco.MjModel:
   the `energy` flag is switched off (it only computes diagnostics), and the
   task's own `model_edit`, if any.
   """
-  xml, assets = _suite_module(spec.domain).get_model_and_assets()
-  model = mujoco.MjModel.from_xml_string(xml, assets)
+  model = compile_suite_model(spec.domain)
   model.opt.enableflags &= ~int(mujoco.mjtEnableBit.mjENBL_ENERGY)
   if spec.model_edit is not None:
     spec.model_edit(model)
@@ -213,17 +209,6 @@ def flatten_observation(obs: Observation) -> jax.Array:
   return jnp.concatenate([jnp.ravel(jnp.asarray(v, jnp.float32)) for v in obs.values()])
 
 
-def _model_id(model: mujoco.MjModel, field: str, name: str) -> int:
-  obj = {"geom": mujoco.mjtObj.mjOBJ_GEOM, "site": mujoco.mjtObj.mjOBJ_SITE,
-         "body": mujoco.mjtObj.mjOBJ_BODY, "mat": mujoco.mjtObj.mjOBJ_MATERIAL,
-         "cam": mujoco.mjtObj.mjOBJ_CAMERA, "light": mujoco.mjtObj.mjOBJ_LIGHT}[
-             field.split("_")[0]]
-  i = mujoco.mj_name2id(model, obj, name)
-  if i < 0:
-    raise ValueError(f"No {field.split('_')[0]} named {name!r} in the model.")
-  return i
-
-
 class Task:
   """One DMCR task: dm_control's model stepped by MJX with a JAX-ported task.
 
@@ -270,7 +255,7 @@ class Task:
     self.action_high = np.where(limited, rng[:, 1], np.inf).astype(np.float32)
     self.action_size = int(self.mj_model.nu)
     self.model_variable_ids = {
-        f"{field}:{name}": (field, _model_id(self.mj_model, field, name))
+        f"{field}:{name}": (field, field_id(self.mj_model, field, name))
         for field, name in spec.model_variables}
     # Shapes only: `forward` does not change them, so it is not traced here.
     initial = jax.eval_shape(self.initialize, jax.random.key(0))

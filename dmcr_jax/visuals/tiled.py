@@ -29,6 +29,8 @@ from typing import Callable
 import mujoco
 import numpy as np
 
+from dmcr_jax.models.names import find_id
+
 # preset -> (shadow map size or None to keep the model's, shadows on, reflections on)
 QUALITY: dict[str, tuple[int | None, bool, bool]] = {
     "exact": (None, True, True),
@@ -78,7 +80,7 @@ class TiledRenderer:
     if self.height < 1 or self.width < 1:
       raise ValueError(f"frame size must be positive, got {height}x{width}")
     if isinstance(camera, str):
-      cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
+      cam_id = find_id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
     else:
       cam_id = int(camera)
     if not 0 <= cam_id < model.ncam:
