@@ -1,6 +1,6 @@
 """Which side of the renderer-parity check a machine changes: MuJoCo's or the ray caster's.
 
-`dump` renders the parity check's frames (`dmcr_jax.visuals.jax_render.compare`:
+`dump` renders the parity check's frames (`benchmarks.jax_render_parity.compare`:
 dm_control states × visual seeds) and saves, per domain, MuJoCo's segmentation
 (body ids) and the ray caster's body ids, and optionally both RGB frames, to an
 `.npz`. `compare` reads two dumps made on different machines (say the CPU
@@ -24,10 +24,10 @@ import numpy as np
 
 def dump(domains: list[str], seeds: int, states: int, out: str, rgb: bool = False) -> None:
   """Saves `compare`'s body ids (int8, (frames, H, W)) per domain to `out`."""
-  from dmcr_jax.visuals import jax_render
+  from benchmarks import jax_render_parity
   arrays = {}
   for domain in domains:
-    res = jax_render.compare(domain, range(seeds), states=states)
+    res = jax_render_parity.compare(domain, range(seeds), states=states)
     ref, jax_ids = (np.stack(x).astype(np.int8) for x in zip(*res["ids"]))
     arrays[f"{domain}_refbody"], arrays[f"{domain}_jaxbody"] = ref, jax_ids
     if rgb:

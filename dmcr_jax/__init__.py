@@ -14,10 +14,10 @@ Importing the package on a machine without a display (no `DISPLAY`) and without
 `MUJOCO_GL` once at import and its default (GLFW) needs a display.
 
 It also adds ``--xla_cpu_enable_concurrency_optimized_scheduler=false`` to
-`XLA_FLAGS` unless that flag is already there: with XLA's default CPU scheduler the
-jitted MJX step of 1,024 vmapped walkers (and the pixel env's step at that size)
-never finished on the 2-core CPU machine (every thread parked on a futex; 1,000
-envs ran in 0.6 s a step). It only affects XLA's CPU backend, and only if the
+`XLA_FLAGS` unless that flag is already there: with XLA's default CPU scheduler a
+jitted MJX step of about a thousand vmapped walkers (and the pixel env's step at
+that size) can stall on a machine with few cores, every thread parked on a futex.
+It only affects XLA's CPU backend, and only if the
 package is imported before JAX's first computation (when XLA reads its flags);
 set the flag yourself to choose otherwise.
 

@@ -120,9 +120,10 @@ def default_frame_skip(task: str) -> int:
 def check_camera(model, camera, task: str) -> None:
   """ValueError unless `camera` is a camera id or name of `model` (listing them)."""
   import mujoco
+  from dmcr_jax.models.names import find_id
   names = [model.camera(i).name or str(i) for i in range(model.ncam)]
   if isinstance(camera, str):
-    ok = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera) >= 0
+    ok = find_id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera) >= 0
   else:
     ok = (not isinstance(camera, bool) and isinstance(camera, (int, np.integer))
           and 0 <= camera < model.ncam)
@@ -169,6 +170,13 @@ def _physics_fns(task, num_envs: int, frame_skip: int, seed_range: SeedRange | N
 RENDERERS = ("pool", "jax")
 """What `make(renderer=...)` accepts: the CPU render pool (MuJoCo's own pixels) or
 the JAX ray caster (physics, rendering and stacking in one jitted call)."""
+
+
+def check_renderer_name(renderer: str) -> str:
+  """`renderer` if it is one of `RENDERERS`, else a ValueError naming them."""
+  if renderer not in RENDERERS:
+    raise ValueError(f"Unknown renderer {renderer!r}; valid: {', '.join(RENDERERS)}.")
+  return renderer
 _POOL_ONLY = ("workers", "quality", "gl", "copy_obs")
 PHYSICS_DEVICES = (None, "cpu")
 """What `make(physics_device=...)` accepts: JAX's default device, or the host CPU."""
@@ -696,8 +704,7 @@ def make(task: str, num_envs: int = 1, visual_seeds: Any = 0,
       [0, 2**32), a visual-seed count other than 1 or N, an option of the other
       renderer, a SeedRange too large for renderer="jax".
   """
-  if renderer not in RENDERERS:
-    raise ValueError(f"Unknown renderer {renderer!r}; valid: {', '.join(RENDERERS)}.")
+  check_renderer_name(renderer)
   other = _JAX_ONLY if renderer == "pool" else _POOL_ONLY
   wrong = sorted(set(kwargs) & set(other))
   if wrong:

@@ -28,8 +28,8 @@ first frame repeated.
 Visual seeds (`make_env(visual_seeds=...)`): fixed seeds (one per env) give a
 table of N looks, row i for env i. A few-shot `SeedRange` gives a table of one
 look per seed of the range, precomputed once on the host (`render_model.prepare`
-+ `device_looks`, about 0.5 s and 212 B of device memory per 10,000 walker
-seeds); on device, an env that resets draws its seed (`physics_env`) and gathers
++ `device_looks`; host time and device memory linear in the range's length); on
+device, an env that resets draws its seed (`physics_env`) and gathers
 row `seed − range.start`. Ranges of more than `MAX_RANGE_LOOKS` seeds are
 refused: draw test looks from a fixed list instead (`TEST_SEEDS.first(n)`).
 
@@ -54,12 +54,12 @@ from dmcr_jax.visuals import render_model as rmod
 from dmcr_jax.visuals.levels import SeedRange
 
 MAX_RANGE_LOOKS = 100_000
-"""The largest `SeedRange` whose looks `make_env` precomputes (≈ 21 MB on device and
-≈ 5 s of host work for walker)."""
+"""The largest `SeedRange` whose looks `make_env` precomputes (their device memory and
+host work grow with the range's length)."""
 RENDER_CHUNK = 256
 """Default envs per vmapped render chunk above which `render_batch` maps over chunks
-(bounds memory; on the H100 chunks of 256 walker envs ran fastest of 64 … 1,024,
-results/jax_render_h100.md)."""
+(bounds memory and keeps a chunk's arrays in cache; chunk sizes compared in
+benchmarks/results/jax_render_h100.md)."""
 
 
 @struct.dataclass

@@ -210,9 +210,9 @@ def test_aux_step_moves_exactly_the_encoder_and_its_partner(algo):
   if algo == "curl":
     # The momentum (target) encoder gets no gradient from the contrastive loss.
     aux = {"encoder": agent.params["encoder"], "curl": agent.params["curl"]}
-    grad = jax.grad(lambda t: sac.curl_loss(
+    grad = jax.grad(lambda t: curl.aux_loss(
         aux, agent.replace(target_params={**agent.target_params, "encoder": t}),
-        obs, aux_input)[0])(agent.target_params["encoder"])
+        obs, aux_input, jax.random.key(0), config)[0])(agent.target_params["encoder"])
     assert all(not np.any(g) for g in jax.tree_util.tree_leaves(grad))
   else:
     # The decoder's optimizer decays its weights (a zero gradient still moves

@@ -170,7 +170,7 @@ def test_make_rejects_bad_renderer_arguments(kwargs, match):
 
 
 @pytest.mark.parametrize("argv, match", [
-    (["--renderer", "gl"], "renderer must be one of pool, jax"),
+    (["--renderer", "gl"], "Unknown renderer 'gl'; valid: pool, jax"),
     (["--renderer", "jax", "--quality", "fast"], "apply only to renderer 'pool'"),
     (["--renderer", "jax", "--chunk-steps", "0"], "chunk_steps must be a positive int"),
 ])

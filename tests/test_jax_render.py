@@ -15,6 +15,7 @@ import mujoco
 import numpy as np
 import pytest
 
+from benchmarks import jax_render_parity as parity
 from dmcr_jax.visuals import jax_render as JR
 from dmcr_jax.visuals import jax_render_scene as JS
 from dmcr_jax.visuals import render_model as RM
@@ -315,7 +316,7 @@ def test_variables_move_the_reacher_target(bank):
 # Parity with MuJoCo (segmentation IoU per body, mean absolute difference)
 # --------------------------------------------------------------------------
 
-# Bounds from `python -m dmcr_jax.visuals.jax_render` (the full bank, 100 seeds x 3
+# Bounds from `python -m benchmarks.jax_render_parity` (the full bank, 100 seeds x 3
 # states: mean 2.1 / 5.4, max 3.9 / 12.1): the test checks three frames with margin.
 MAD_BOUND = {"cartpole": 4.0, "walker": 9.0}
 
@@ -323,7 +324,7 @@ MAD_BOUND = {"cartpole": 4.0, "walker": 9.0}
 @pytest.mark.parametrize("domain", ["cartpole", "walker"])
 def test_parity_with_mujoco(domain, bank):
   rm = RM.build_render_model(domain, bank)
-  res = JR.compare(domain, [0, 1, 2], states=1, size=84, rm=rm, min_pixels=10)
+  res = parity.compare(domain, [0, 1, 2], states=1, size=84, rm=rm, min_pixels=10)
   for frame in res["iou"]:
     assert frame, "no bodies seen"
     for body, iou in frame.items():
@@ -338,7 +339,7 @@ def test_parity_with_mujoco(domain, bank):
 def test_parity_summary_per_body():
   # Two frames: body 1 scored twice (IoU 1.0 and 0.9), body 2 once (0.96).
   res = {"mad": [2.0, 4.0], "iou": [{1: 1.0, 2: 0.96}, {1: 0.9}], "frames": []}
-  row = JR.parity_row("cartpole", res, ["", "cart", "pole"], seeds=2)
+  row = parity.parity_row("cartpole", res, ["", "cart", "pole"], seeds=2)
   assert row["frames"] == 2 and row["seeds"] == 2
   assert row["mad_mean"] == 3.0 and row["mad_max"] == 4.0
   assert row["iou_min"] == 0.9 and row["iou_mean"] == pytest.approx((1.0 + 0.96 + 0.9) / 3)
@@ -347,6 +348,6 @@ def test_parity_summary_per_body():
   assert row["iou_min_per_body"] == {"1:cart": 0.9, "2:pole": 0.96}
   assert row["frac_ge_095_per_body"] == {"1:cart": 0.5, "2:pole": 1.0}
   assert row["frames_per_body"] == {"1:cart": 2, "2:pole": 1}
-  table = JR.parity_markdown([dict(row, min_pixels=10)])
+  table = parity.parity_markdown([dict(row, min_pixels=10)])
   assert "| cartpole | 10 | 2 | 3.00 / 4.00 | 3 |" in table
   assert "1:cart (0.950 mean, 50% ≥ 0.95 of 2 frames)" in table

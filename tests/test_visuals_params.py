@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from dmcr_jax import visuals as V
+from dmcr_jax.models import names
 from dmcr_jax.visuals import params as P
 from dmcr_jax.visuals import ranges as R
 
@@ -31,10 +32,10 @@ def test_seed_zero_is_dm_control_default(domain):
   for k in FIELDS:
     np.testing.assert_array_equal(np.asarray(getattr(p, k))[0], dflt[k], err_msg=k)
   # The defaults are dm_control's model values.
-  m = P.dm_control_model(domain)
+  m = names.suite_model(domain)
   r = R.DOMAIN_RANGES[domain]
   np.testing.assert_array_equal(
-      dflt["cam_pos"], m.cam_pos[V.render_model._id(m, P.mujoco.mjtObj.mjOBJ_CAMERA, r.camera)]
+      dflt["cam_pos"], m.cam_pos[names.obj_id(m, P.mujoco.mjtObj.mjOBJ_CAMERA, r.camera)]
       .astype(np.float32))
   np.testing.assert_array_equal(dflt["headlight_ambient"], np.float32([.4, .4, .4]))
   assert dflt["floor_id"] == -1 and dflt["background_id"] == -1

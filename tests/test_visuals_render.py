@@ -19,7 +19,7 @@ from dmcr_jax import visuals as V
 from dmcr_jax.visuals import render_model as RM
 from dmcr_jax.visuals import show
 from dmcr_jax.visuals import textures as T
-from dmcr_jax.visuals.params import dm_control_model
+from dmcr_jax.models.names import suite_model
 
 TASKS = {"ball_in_cup": "catch", "cartpole": "swingup", "cheetah": "run",
          "finger": "spin", "fish": "swim", "hopper": "hop", "humanoid": "walk",
@@ -56,7 +56,7 @@ def frame_hash(img):
 @pytest.mark.parametrize("domain", V.DOMAINS)
 def test_layout_and_additions_are_visual_only(domain, bank):
   rm = V.build_render_model(domain, bank)
-  m, base = rm.model, dm_control_model(domain)
+  m, base = rm.model, suite_model(domain)
   for f in ("nq", "nv", "nu", "na", "nbody", "njnt", "ngeom", "nsite", "ncam", "nlight"):
     assert getattr(m, f) == getattr(base, f), f
   for f in ("jnt_qposadr", "jnt_dofadr", "jnt_type", "body_parentid", "geom_type",
@@ -76,7 +76,7 @@ def test_layout_and_additions_are_visual_only(domain, bank):
 def test_mujoco_dynamics_unchanged_by_looks(domain, bank):
   """Stepping the render model with any look gives dm_control's trajectory bit for bit."""
   rm = copy.copy(V.build_render_model(domain, bank))
-  base = dm_control_model(domain)
+  base = suite_model(domain)
   looks = RM.prepare(rm, rm.sample([1, 2, 3], "all"))
   rng = np.random.default_rng(0)
   ctrl = rng.uniform(-1, 1, (25, base.nu))

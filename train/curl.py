@@ -11,9 +11,11 @@ row's key, the other B − 1 keys are its negatives. W (F × F) is learned with 
 encoder; the momentum encoder gets no gradient. At acting and evaluation time
 the observation is center-cropped (`networks.Encoder.input_size`).
 
-The update order (critic, then actor, α and targets every `update_delay`
-updates, then the contrastive step every update) and the wiring into the learner
-are in `train.sac`.
+The auxiliary task's interface, shared with `train.sac_ae`: `PARTNER` (the
+parameters trained beside the encoder), `init_partner`, `optimizer` and
+`aux_loss`. The update order (critic, then actor, α and targets every
+`update_delay` updates, then the contrastive step every update) and the wiring
+into the learner are in `train.sac`.
 """
 
 from __future__ import annotations
@@ -21,6 +23,9 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import optax
+
+PARTNER = "curl"
+"""The key of CURL's parameters (``{"w": W}``) in the agent's params."""
 
 
 def random_crop(key: jax.Array, images: jax.Array, size: int) -> jax.Array:
@@ -89,3 +94,43 @@ def info_nce(queries: jax.Array, keys: jax.Array, w: jax.Array) -> jax.Array:
 def init_w(key: jax.Array, feature_dim: int) -> jax.Array:
   """W's initial value: uniform in [0, 1), as CURL's ``torch.rand``."""
   return jax.random.uniform(key, (feature_dim, feature_dim), jnp.float32)
+
+
+def init_partner(key: jax.Array, networks, features: jax.Array, config) -> dict:
+  """``{"w": W}``, W from `init_w` (`networks` and `features` are unused: W's
+  shape is `config.feature_dim` squared)."""
+  del networks, features
+  return {"w": init_w(key, config.feature_dim)}
+
+
+def optimizer(config) -> optax.GradientTransformation:
+  """Adam(`config.encoder_lr`) over ``{"encoder", "curl"}``. (CURL's code steps the
+  encoder with two Adam optimizers on the same contrastive gradient, its
+  `encoder_optimizer` and `cpc_optimizer`; here it takes one step.)"""
+  return optax.adam(config.encoder_lr)
+
+
+def aux_loss(aux_params, agent, obs: jax.Array, aux_input: jax.Array, key: jax.Array,
+             config) -> tuple[jax.Array, dict[str, jax.Array]]:
+  """CURL's InfoNCE loss, a function of ``{"encoder", "curl"}``.
+
+  Queries are the online encoder's features of the anchors (gradient), keys the
+  target (momentum) encoder's features of the positives (no gradient).
+
+  Args:
+    aux_params: ``{"encoder": …, "curl": {"w": W}}``, the differentiated parameters.
+    agent: the `train.sac.AgentState` (its encoder module and target encoder).
+    obs: uint8 (B, S, S, C), the anchor crops (also the critic's o).
+    aux_input: uint8 (B, S, S, C), the positives: independent crops of the same
+      observations.
+    key, config: unused (the signature shared with `train.sac_ae.aux_loss`).
+
+  Returns:
+    (loss, {"aux_loss": loss}).
+  """
+  del key, config
+  encoder = agent.networks.encoder
+  queries = encoder.apply(aux_params["encoder"], obs)
+  keys = jax.lax.stop_gradient(encoder.apply(agent.target_params["encoder"], aux_input))
+  loss = info_nce(queries, keys, aux_params[PARTNER]["w"])
+  return loss, {"aux_loss": loss}

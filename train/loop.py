@@ -74,6 +74,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dmcr_jax.checks import positive_int
+from dmcr_jax.env import RENDERERS, check_renderer_name  # noqa: F401 (RENDERERS: for the CLIs)
 from dmcr_jax.visuals.levels import SeedRange
 from train import replay, sac
 from train import step as train_step
@@ -81,8 +82,6 @@ from train import step as train_step
 
 AGENT_LOOPS = ("vmap", "map")
 """What `TrainConfig.agent_loop` accepts."""
-RENDERERS = ("pool", "jax")
-"""What `TrainConfig.renderer` accepts (`dmcr_jax.make`'s renderers)."""
 PHYSICS = ("auto", "cpu", "device")
 """What `TrainConfig.physics` accepts: "auto" (module doc), the host CPU, or the
 learner's device."""
@@ -198,8 +197,7 @@ def parse_visual_seeds(value) -> Any:
 def check_renderer(renderer: str, quality: str, workers: int | None) -> None:
   """A ValueError for a renderer not in `RENDERERS`, or for the pool's options
   (`quality` other than the default "exact", `workers`) given to the JAX one."""
-  if renderer not in RENDERERS:
-    raise ValueError(f"renderer must be one of {', '.join(RENDERERS)}, got {renderer!r}")
+  check_renderer_name(renderer)
   if renderer == "jax" and (quality != "exact" or workers is not None):
     raise ValueError("quality and workers apply only to renderer 'pool' (the JAX ray "
                      "caster has no render workers and no quality presets)")
@@ -450,8 +448,8 @@ def initial_state(cfg: TrainConfig, manager, resume: bool, obs_shape, action_siz
 
 PROGRESS_FRACTION = 0.02
 """`RunLog.due` reports progress at least every this fraction of a run's steps,
-whatever `log_every` says (a CPU run of 600 steps with log_every 1,000 showed
-nothing until its end)."""
+whatever `log_every` says, so a run shorter than `log_every` still shows
+progress."""
 
 
 def progress_every(cfg: TrainConfig) -> int:

@@ -214,9 +214,8 @@ class StrideTwoConv(nn.Module):
   blocks (`space_to_depth`) and K'[p] = (K[2p], K[2p + 1]): a 2×2 stride-1
   convolution over 4·C_in channels (`space_to_depth_kernel`). Why: the encoder's
   first layer sees 9 input channels, for which cuDNN picks a generic, slow kernel on
-  GPUs (4.5 of them per SAC update took 21 % of the update's time in a profile on
-  the H100); 36 channels, padded with zero channels to `BLOCK_CHANNEL_MULTIPLE`,
-  go to its tensor-core kernels.
+  GPUs; 36 channels, padded with zero channels to `BLOCK_CHANNEL_MULTIPLE`, go to
+  its tensor-core kernels (profiles: benchmarks/results/learner_h100.md).
 
   Attributes:
     features: output channels.
@@ -278,8 +277,7 @@ class Decoder(nn.Module):
   padding=((2, after), (2, after)))``, but computed in phases (sub-pixel): one
   2×2 stride-1 convolution giving each of the four output-pixel parities, then
   interleaved. XLA computes the transposed convolution by convolving the
-  zero-dilated input, which it materialises, and on GPUs that one layer cost more
-  than the whole encoder (forward + backward, in a profile on the H100); the
+  zero-dilated input, which it materialises (three quarters of it zeros); the
   phases never dilate.
 
   Attributes:

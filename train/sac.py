@@ -67,6 +67,10 @@ COMPUTE_DTYPES = ("float32", "bfloat16")
 
 ALGOS = ("sac_aug", "curl", "sac_ae")
 """What `SACConfig.algo` accepts: the paper's SAC+AUG, CURL and SAC+AE."""
+AUX_TASKS = {"curl": curl, "sac_ae": sac_ae}
+"""The auxiliary task of each learner that has one: a module with `PARTNER`,
+`init_partner`, `optimizer` and `aux_loss(aux_params, agent, obs, aux_input, key,
+config)`."""
 
 ALGO_DEFAULTS = {
     "sac_aug": dict(batch_size=256, aug="drq", beta=0.9, lam=1e-5),
@@ -360,24 +364,10 @@ def alpha_optimizer(config: SACConfig) -> optax.GradientTransformation:
 
 
 def aux_optimizer(config: SACConfig) -> optax.GradientTransformation | None:
-  """The auxiliary step's optimizer: its own Adam states, as in the original code.
-
-  CURL: Adam(`encoder_lr`) over ``{"encoder", "curl"}``. (CURL's code steps the
-  encoder with two Adam optimizers on the same contrastive gradient, its
-  `encoder_optimizer` and `cpc_optimizer`; here it takes one step.) SAC+AE:
-  Adam(`encoder_lr`) for the encoder and, for the decoder, weight decay
-  λ_w·θ added to the gradient before Adam (PyTorch Adam's ``weight_decay``).
-  None for SAC+AUG.
-  """
-  if config.algo == "curl":
-    return optax.adam(config.encoder_lr)
-  if config.algo == "sac_ae":
-    return optax.multi_transform(
-        {"encoder": optax.adam(config.encoder_lr),
-         "decoder": optax.chain(optax.add_decayed_weights(config.decoder_weight_lambda),
-                                optax.adam(config.encoder_lr))},
-        {"encoder": "encoder", "decoder": "decoder"})
-  return None
+  """The auxiliary step's optimizer, its own Adam states as in the original code:
+  the auxiliary task's `optimizer` (`train.curl`, `train.sac_ae`); None for SAC+AUG."""
+  task = AUX_TASKS.get(config.algo)
+  return None if task is None else task.optimizer(config)
 
 
 # --------------------------------------------------------------------------- #
@@ -433,10 +423,10 @@ def init_agent(key: jax.Array, obs_shape: tuple[int, int, int], action_size: int
   copy = lambda tree: jax.tree_util.tree_map(jnp.array, tree)
   params = {"encoder": encoder, "critic": critic, "actor": actor}
   aux = {}
-  if config.algo == "curl":
-    aux = {"curl": {"w": curl.init_w(jax.random.fold_in(key, 3), config.feature_dim)}}
-  elif config.algo == "sac_ae":
-    aux = {"decoder": networks.decoder.init(jax.random.fold_in(key, 3), features)}
+  if config.algo in AUX_TASKS:
+    task = AUX_TASKS[config.algo]
+    aux = {task.PARTNER: task.init_partner(jax.random.fold_in(key, 3), networks,
+                                           features, config)}
   aux_opt = aux_optimizer(config)
   return AgentState(
       params={**params, **aux},
@@ -841,51 +831,6 @@ def update(agent: AgentState, batch: Batch, key: jax.Array, config: SACConfig, *
   return agent, metrics
 
 
-def curl_loss(aux_params: Params, agent: AgentState, anchor: jax.Array,
-              positive: jax.Array) -> tuple[jax.Array, Metrics]:
-  """CURL's InfoNCE loss, a function of ``{"encoder", "curl"}`` (`train.curl`).
-
-  Queries are the online encoder's features of the anchors (gradient), keys the
-  target (momentum) encoder's features of the positives (no gradient).
-
-  Args:
-    aux_params: ``{"encoder": …, "curl": {"w": W}}``, the differentiated parameters.
-    agent: the agent (its target encoder).
-    anchor: uint8 (B, S, S, C), the anchor crops (also the critic's o).
-    positive: uint8 (B, S, S, C), independent crops of the same observations.
-
-  Returns:
-    (loss, {"aux_loss": loss}).
-  """
-  encoder = agent.networks.encoder
-  queries = encoder.apply(aux_params["encoder"], anchor)
-  keys = jax.lax.stop_gradient(encoder.apply(agent.target_params["encoder"], positive))
-  loss = curl.info_nce(queries, keys, aux_params["curl"]["w"])
-  return loss, {"aux_loss": loss}
-
-
-def reconstruction_loss(aux_params: Params, agent: AgentState, obs: jax.Array,
-                        key: jax.Array, config: SACConfig) -> tuple[jax.Array, Metrics]:
-  """SAC+AE's L_rec + λ_z·latent penalty, a function of ``{"encoder", "decoder"}``.
-
-  Args:
-    aux_params: ``{"encoder": …, "decoder": …}``, the differentiated parameters.
-    agent: the agent (its modules).
-    obs: uint8 (B, H, W, C), the critic's observations.
-    key: a `jax.random` key for the target's dither.
-    config: the hyperparameters (`decoder_bits`, `decoder_latent_lambda`).
-
-  Returns:
-    (loss, {"aux_loss", "reconstruction_loss", "latent_loss"}).
-  """
-  nets = agent.networks
-  target = sac_ae.reconstruction_target(key, obs, config.decoder_bits)
-  features = nets.encoder.apply(aux_params["encoder"], obs)
-  reconstruction = nets.decoder.apply(aux_params["decoder"], features)
-  loss, metrics = sac_ae.loss(reconstruction, target, features, config.decoder_latent_lambda)
-  return loss, {"aux_loss": loss, **metrics}
-
-
 def aux_step(agent: AgentState, obs: jax.Array, aux_input: jax.Array, key: jax.Array,
              config: SACConfig) -> tuple[AgentState, Metrics]:
   """One step of CURL's or SAC+AE's auxiliary loss on the encoder and its partner.
@@ -900,13 +845,11 @@ def aux_step(agent: AgentState, obs: jax.Array, aux_input: jax.Array, key: jax.A
   Returns:
     (new agent, metrics).
   """
-  partner = "curl" if config.algo == "curl" else "decoder"
-  aux_params = {"encoder": agent.params["encoder"], partner: agent.params[partner]}
-  if config.algo == "curl":
-    grads, metrics = jax.grad(curl_loss, has_aux=True)(aux_params, agent, obs, aux_input)
-  else:
-    grads, metrics = jax.grad(reconstruction_loss, has_aux=True)(
-        aux_params, agent, aux_input, key, config)
+  task = AUX_TASKS[config.algo]
+  aux_params = {"encoder": agent.params["encoder"],
+                task.PARTNER: agent.params[task.PARTNER]}
+  grads, metrics = jax.grad(task.aux_loss, has_aux=True)(aux_params, agent, obs,
+                                                         aux_input, key, config)
   updates, aux_opt_state = aux_optimizer(config).update(grads, agent.aux_opt_state,
                                                         aux_params)
   aux_params = optax.apply_updates(aux_params, updates)

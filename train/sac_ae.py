@@ -11,14 +11,21 @@ The loss is L_rec = mean((t − D(h))²) over every pixel and channel, plus the
 L2 penalty on the latent, λ_z · mean_b ½‖h_b‖² (λ_z = 1e-6); the decoder's
 optimizer adds weight decay λ_w·θ to its gradient (λ_w = 1e-7, PyTorch Adam's
 ``weight_decay``). L_rec + the latent penalty train the encoder and the decoder
-with their own Adam step after the SAC step, every update. The wiring into the
-learner is in `train.sac`.
+with their own Adam step after the SAC step, every update.
+
+The auxiliary task's interface, shared with `train.curl`: `PARTNER` (the
+parameters trained beside the encoder), `init_partner`, `optimizer` and
+`aux_loss`. The wiring into the learner is in `train.sac`.
 """
 
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import optax
+
+PARTNER = "decoder"
+"""The key of the decoder's parameters in the agent's params."""
 
 
 def reconstruction_target(key: jax.Array, obs: jax.Array, bits: int = 5) -> jax.Array:
@@ -60,3 +67,45 @@ def loss(reconstruction: jax.Array, target: jax.Array, features: jax.Array,
   rec = jnp.mean(jnp.square(target - reconstruction))
   latent = latent_penalty(features)
   return rec + latent_lambda * latent, {"reconstruction_loss": rec, "latent_loss": latent}
+
+
+def init_partner(key: jax.Array, networks, features: jax.Array, config) -> dict:
+  """The decoder's parameters (`networks.decoder` initialised on `features`, (1, F))."""
+  del config
+  return networks.decoder.init(key, features)
+
+
+def optimizer(config) -> optax.GradientTransformation:
+  """Adam(`config.encoder_lr`) for the encoder and, for the decoder, weight decay
+  λ_w·θ (`config.decoder_weight_lambda`) added to the gradient before Adam
+  (PyTorch Adam's ``weight_decay``)."""
+  return optax.multi_transform(
+      {"encoder": optax.adam(config.encoder_lr),
+       PARTNER: optax.chain(optax.add_decayed_weights(config.decoder_weight_lambda),
+                            optax.adam(config.encoder_lr))},
+      {"encoder": "encoder", PARTNER: PARTNER})
+
+
+def aux_loss(aux_params, agent, obs: jax.Array, aux_input: jax.Array, key: jax.Array,
+             config) -> tuple[jax.Array, dict[str, jax.Array]]:
+  """SAC+AE's L_rec + λ_z·latent penalty, a function of ``{"encoder", "decoder"}``.
+
+  Args:
+    aux_params: ``{"encoder": …, "decoder": …}``, the differentiated parameters.
+    agent: the `train.sac.AgentState` (its encoder and decoder modules).
+    obs: the critic's observations (unused: the signature shared with
+      `train.curl.aux_loss`).
+    aux_input: uint8 (B, H, W, C), the observations to reconstruct.
+    key: a `jax.random` key for the target's dither.
+    config: the hyperparameters (`decoder_bits`, `decoder_latent_lambda`).
+
+  Returns:
+    (loss, {"aux_loss", "reconstruction_loss", "latent_loss"}).
+  """
+  del obs
+  nets = agent.networks
+  target = reconstruction_target(key, aux_input, config.decoder_bits)
+  features = nets.encoder.apply(aux_params["encoder"], aux_input)
+  reconstruction = nets.decoder.apply(aux_params[PARTNER], features)
+  total, metrics = loss(reconstruction, target, features, config.decoder_latent_lambda)
+  return total, {"aux_loss": total, **metrics}

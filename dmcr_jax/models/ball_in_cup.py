@@ -16,10 +16,9 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import mujoco
 from mujoco import mjx
 
-from dmcr_jax.models import randomizers
+from dmcr_jax.models import names
 from dmcr_jax.models.base import TaskSpec
 
 _DEFAULT_TIME_LIMIT = 20.0
@@ -59,9 +58,9 @@ def rejection_sample(key, m, d, draw):
 
 def _draw_ball(key, m, qpos):
   kx, kz = jax.random.split(key)
-  qpos = qpos.at[randomizers.qpos_adr(m, "ball_x")].set(
+  qpos = qpos.at[names.qpos_adr(m, "ball_x")].set(
       jax.random.uniform(kx, (), minval=-.2, maxval=.2))
-  return qpos.at[randomizers.qpos_adr(m, "ball_z")].set(
+  return qpos.at[names.qpos_adr(m, "ball_z")].set(
       jax.random.uniform(kz, (), minval=.2, maxval=.5))
 
 
@@ -76,12 +75,12 @@ def _observation(m, d, info):
 
 def _reward(m, d, info):
   del info
-  target = d.site_xpos[randomizers.obj_id(m, mujoco.mjtObj.mjOBJ_SITE, "target")]
-  ball = d.xpos[randomizers.obj_id(m, mujoco.mjtObj.mjOBJ_BODY, "ball")]
+  target = d.site_xpos[names.site_id(m, "target")]
+  ball = d.xpos[names.body_id(m, "ball")]
   ball_to_target = jnp.abs((target - ball)[jnp.array([0, 2])])
   target_size = m.site_size[
-      randomizers.obj_id(m, mujoco.mjtObj.mjOBJ_SITE, "target")][[0, 2]]
-  ball_size = m.geom_size[randomizers.obj_id(m, mujoco.mjtObj.mjOBJ_GEOM, "ball"), 0]
+      names.site_id(m, "target")][[0, 2]]
+  ball_size = m.geom_size[names.geom_id(m, "ball"), 0]
   return jnp.all(ball_to_target < target_size - ball_size).astype(jnp.float32)
 
 

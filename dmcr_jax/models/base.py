@@ -22,12 +22,11 @@ Solver budget: the solver keeps dm_control's iteration limit and tolerance, but
 the line search is capped at `DEFAULT_LS_ITERATIONS` (16; dm_control asks for 50).
 The cap is an MJX fix, not a physics change: MuJoCo C stops a line search once it
 converges, while MJX runs it as a fixed-length scan whose every step costs the
-same under `vmap`, so 50 steps made walker 2.5× slower (0.43 M vs 1.06 M physics
-steps/s on an H100 at 8,192 envs). Measured: in 1,000 random dm_control steps of
-every task the line search never used more than 13 cost evaluations; over 20
-control steps MJX trajectories with cap 16 stay within 8.7e-4 of those with 50
-(walker; finger 2.5e-6, cheetah 0) and their drift from dm_control is unchanged
-(benchmarks/results/solver_budget_cpu.md). `load(name, solver_iterations=...,
+same under `vmap`, so the cap bounds the cost of every physics step. It lies above
+the most cost evaluations dm_control's line search uses in random episodes of
+every task, so trajectories stay close to those of the uncapped search and
+their drift from dm_control is unchanged (`benchmarks.solver_budget`; results in
+benchmarks/results/solver_budget_*.md). `load(name, solver_iterations=...,
 ls_iterations=...)` overrides either budget; smaller solver budgets are faster but
 do drift (mjx.benchmark's 1 / 4 makes walker diverge).
 
@@ -35,12 +34,9 @@ Matrix-product precision: every physics part (`sync`, `physics_steps` and a
 task's `initialize`, `forward`, `advance`, `observe`) is traced under
 `jax.default_matmul_precision(PHYSICS_MATMUL_PRECISION)` ("highest": float32
 products). JAX's default lets a GPU with tensor cores compute float32 products in
-TensorFloat-32 (a 10-bit mantissa); on an H100 that made MJX drift from
-dm_control by orders of magnitude (median over 32 mid-episode states of the
-largest deviation in 20 control steps: walker 0.43 against 3.0e-4, humanoid 6.5
-against 8.5e-3, cheetah 4.4e-3 against 1.5e-5, fish 8.7e-3 against 6.1e-6) at no
-measured speed cost (walker, 8,192 envs: 1.17 M physics steps/s either way;
-benchmarks/results/solver_budget_h100.md, physics_h100_precision.md). Networks
+TensorFloat-32 (a 10-bit mantissa), which makes MJX drift from dm_control by
+orders of magnitude more than float32 does; the drift and the speed of both
+precisions: benchmarks/results/solver_budget_h100.md, physics_h100_precision.md. Networks
 and other callers keep their own precision. `physics_matmul_precision(...)` sets
 another precision for physics traced inside it (for measuring this:
 `benchmarks.solver_budget --precisions`, `benchmarks.physics --matmul-precision`).
@@ -64,6 +60,8 @@ import mujoco
 import numpy as np
 from flax import struct
 from mujoco import mjx
+
+from dmcr_jax.models.names import compile_suite_model, field_id
 
 Info = dict[str, jax.Array]
 
@@ -137,11 +135,6 @@ class TaskSpec:
     return f"{self.domain}-{self.task}"
 
 
-def _suite_module(domain: str):
-  import importlib
-  return importlib.import_module(f"dm_control.suite.{domain}")
-
-
 def load_mj_model(spec: TaskSpec) -> mujoco.MjModel:
   """Compiles dm_control's suite MJCF for `spec.domain` and applies MJX fixes.
 
@@ -149,8 +142,7 @@ def load_mj_model(spec: TaskSpec) -> mujoco.MjModel:
   the `energy` flag is switched off (it only computes diagnostics), and the
   task's own `model_edit`, if any.
   """
-  xml, assets = _suite_module(spec.domain).get_model_and_assets()
-  model = mujoco.MjModel.from_xml_string(xml, assets)
+  model = compile_suite_model(spec.domain)
   model.opt.enableflags &= ~int(mujoco.mjtEnableBit.mjENBL_ENERGY)
   if spec.model_edit is not None:
     spec.model_edit(model)
@@ -173,7 +165,7 @@ def full_precision(fn: Callable) -> Callable:
 @contextlib.contextmanager
 def physics_matmul_precision(precision: str):
   """Physics traced inside the block computes its products at `precision` (one of
-  `MATMUL_PRECISIONS`; "default" is JAX's, TensorFloat-32 on an H100) instead of
+  `MATMUL_PRECISIONS`; "default" is JAX's, TensorFloat-32 on GPUs with tensor cores) instead of
   `PHYSICS_MATMUL_PRECISION`. For measuring what float32 buys; functions traced
   before or after the block are unaffected."""
   global PHYSICS_MATMUL_PRECISION
@@ -215,17 +207,6 @@ def physics_steps(m: mjx.Model, d: mjx.Data, n: int) -> mjx.Data:
 def flatten_observation(obs: Observation) -> jax.Array:
   """Concatenates named observation arrays, each raveled, in their given order."""
   return jnp.concatenate([jnp.ravel(jnp.asarray(v, jnp.float32)) for v in obs.values()])
-
-
-def _model_id(model: mujoco.MjModel, field: str, name: str) -> int:
-  obj = {"geom": mujoco.mjtObj.mjOBJ_GEOM, "site": mujoco.mjtObj.mjOBJ_SITE,
-         "body": mujoco.mjtObj.mjOBJ_BODY, "mat": mujoco.mjtObj.mjOBJ_MATERIAL,
-         "cam": mujoco.mjtObj.mjOBJ_CAMERA, "light": mujoco.mjtObj.mjOBJ_LIGHT}[
-             field.split("_")[0]]
-  i = mujoco.mj_name2id(model, obj, name)
-  if i < 0:
-    raise ValueError(f"No {field.split('_')[0]} named {name!r} in the model.")
-  return i
 
 
 class Task:
@@ -274,7 +255,7 @@ class Task:
     self.action_high = np.where(limited, rng[:, 1], np.inf).astype(np.float32)
     self.action_size = int(self.mj_model.nu)
     self.model_variable_ids = {
-        f"{field}:{name}": (field, _model_id(self.mj_model, field, name))
+        f"{field}:{name}": (field, field_id(self.mj_model, field, name))
         for field, name in spec.model_variables}
     # Shapes only: `forward` does not change them, so it is not traced here.
     initial = jax.eval_shape(self.initialize, jax.random.key(0))

@@ -17,11 +17,10 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 from mujoco import mjx
 
-from dmcr_jax.models import randomizers
+from dmcr_jax.models import names
 from dmcr_jax.models.base import TaskSpec, physics_steps
 from dmcr_jax.models.rewards import tolerance
 
@@ -30,14 +29,8 @@ _RUN_SPEED = 10
 _SETTLE_STEPS = 200
 
 
-def _sensor(m, d, name):
-  i = randomizers.obj_id(m, mujoco.mjtObj.mjOBJ_SENSOR, name)
-  adr, dim = int(np.asarray(m.sensor_adr)[i]), int(np.asarray(m.sensor_dim)[i])
-  return d.sensordata[adr:adr + dim]
-
-
 def _speed(m, d):
-  return _sensor(m, d, "torso_subtreelinvel")[0]
+  return names.sensor(m, d, "torso_subtreelinvel")[0]
 
 
 def _initialize(key, m, d):

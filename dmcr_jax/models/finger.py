@@ -29,7 +29,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from dmcr_jax.models import randomizers
+from dmcr_jax.models import names, randomizers
 from dmcr_jax.models.base import TaskSpec
 
 _TIME_LIMIT = 20.0
@@ -46,16 +46,9 @@ _TARGET_SIZE = "site_size:target"
 
 # Model lookups ----------------------------------------------------------------
 
-def _sensor(m, name: str) -> np.ndarray:
-  """Static `sensordata` indices of the sensor called `name`."""
-  i = randomizers.obj_id(m, mujoco.mjtObj.mjOBJ_SENSOR, name)
-  adr = int(np.asarray(m.sensor_adr)[i])
-  return np.arange(adr, adr + int(np.asarray(m.sensor_dim)[i]))
-
-
-def _read(m, d, *names: str) -> jax.Array:
+def _read(m, d, *sensors: str) -> jax.Array:
   """`sensordata` of the named sensors, concatenated (dm_control's named read)."""
-  return d.sensordata[np.concatenate([_sensor(m, n) for n in names])]
+  return d.sensordata[np.concatenate([names.sensor_indices(m, n) for n in sensors])]
 
 
 # Initial state ----------------------------------------------------------------
@@ -89,9 +82,7 @@ def _random_collision_free_qpos(key, m, d) -> jax.Array:
 @functools.cache
 def _site_rgba(name: str) -> np.ndarray:
   """A site's compiled `site_rgba` (MJX models do not carry this visual field)."""
-  from dm_control.suite import finger  # pylint: disable=g-import-not-at-top
-  model = mujoco.MjModel.from_xml_string(*finger.get_model_and_assets())
-  return np.array(model.site(name).rgba, np.float32)
+  return np.array(names.suite_model("finger").site(name).rgba, np.float32)
 
 
 def _initialize_spin(key, m, d):
@@ -104,10 +95,10 @@ def _initialize_spin(key, m, d):
 def _initialize_turn(key, m, d, target_radius: float):
   k_angle, k_joints = jax.random.split(key)
   target_angle = jax.random.uniform(k_angle, minval=-jnp.pi, maxval=jnp.pi)
-  hinge = randomizers.joint_id(m, "hinge")
+  hinge = names.joint_id(m, "hinge")
   anchor = mjx.kinematics(m, d).xanchor[hinge]  # fixed: the spinner is welded
-  radius = jnp.asarray(m.geom_size)[randomizers.obj_id(m, mujoco.mjtObj.mjOBJ_GEOM, "cap1")].sum()
-  target = randomizers.obj_id(m, mujoco.mjtObj.mjOBJ_SITE, "target")
+  radius = jnp.asarray(m.geom_size)[names.geom_id(m, "cap1")].sum()
+  target = names.site_id(m, "target")
   pos = jnp.asarray(m.site_pos)[target].at[0].set(anchor[0] + radius * jnp.sin(target_angle))
   pos = pos.at[2].set(anchor[2] + radius * jnp.cos(target_angle))
   size = jnp.asarray(m.site_size)[target].at[0].set(target_radius)
@@ -117,7 +108,7 @@ def _initialize_turn(key, m, d, target_radius: float):
 
 def _spin_model(model: mujoco.MjModel) -> None:
   """Spin's constant model edit: the hinge damping dm_control sets each episode."""
-  hinge = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, "hinge")
+  hinge = names.joint_id(model, "hinge")
   model.dof_damping[model.jnt_dofadr[hinge]] = _SPIN_HINGE_DAMPING
 
 

@@ -42,12 +42,9 @@ On 100 dm_control states, MJX's `qfrc_passive` (springs, dampers, fluid) and
 (checked in `tests/test_fish_fix.py`): MJX ignores none of fish.xml's
 dynamics.
 
-Measured against dm_control (float64): state parity (200 states) obs 4.6e-7,
-reward 2.4e-7; trajectory parity (4 × 20 control steps) 7.1e-6. Over 4 full
-1,000-step swim episodes, float32 MJX drifts at most 1.9e-5 in qpos, 1.3e-5 in
-qvel, 4.2e-5 in obs, 2.6e-6 in reward; float64 MJX stays within 6e-15 (qpos)
-and 3.5e-14 (qvel), i.e. the physics is dm_control's and the float32 drift is
-rounding.
+Against dm_control, float64 MJX follows full swim episodes to rounding, so the
+physics is dm_control's and float32 MJX's drift is float32 rounding; state and
+trajectory parity are tested in `tests/test_models.py`.
 """
 
 from __future__ import annotations
@@ -59,7 +56,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from dmcr_jax.models import randomizers
+from dmcr_jax.models import names
 from dmcr_jax.models.base import TaskSpec
 from dmcr_jax.models.rewards import tolerance
 
@@ -75,17 +72,9 @@ _TARGET_RGBA = "geom_rgba:target"
 
 # Model lookups ----------------------------------------------------------------
 
-def _geom(m, name: str) -> int:
-  return randomizers.obj_id(m, mujoco.mjtObj.mjOBJ_GEOM, name)
-
-
-def _body(m, name: str) -> int:
-  return randomizers.obj_id(m, mujoco.mjtObj.mjOBJ_BODY, name)
-
-
 def _joint_qpos(m) -> np.ndarray:
   """Static `qpos` addresses of the seven tail and fin joints, in `_JOINTS` order."""
-  return np.array([randomizers.qpos_adr(m, j) for j in _JOINTS])
+  return np.array([names.qpos_adr(m, j) for j in _JOINTS])
 
 
 def disable_collisions(model: mujoco.MjModel) -> None:
@@ -105,7 +94,7 @@ def _random_pose(key, m, qpos):
   """Root orientation normalize(N(0,1)^4), joints U(-.2, .2), as dm_control."""
   k_quat, k_joints = jax.random.split(key)
   quat = jax.random.normal(k_quat, (4,))
-  root = randomizers.qpos_adr(m, "root")
+  root = names.qpos_adr(m, "root")
   qpos = qpos.at[root + 3:root + 7].set(quat / jnp.linalg.norm(quat))
   angles = jax.random.uniform(k_joints, (len(_JOINTS),), minval=-_JOINT_RANGE,
                               maxval=_JOINT_RANGE)
@@ -113,7 +102,7 @@ def _random_pose(key, m, qpos):
 
 
 def _initialize_upright(key, m, d):
-  rgba = jnp.asarray(m.geom_rgba)[_geom(m, "target")].at[3].set(0.)  # hidden
+  rgba = jnp.asarray(m.geom_rgba)[names.geom_id(m, "target")].at[3].set(0.)  # hidden
   info = {_TARGET_RGBA: rgba.astype(jnp.float32)}
   return d.replace(qpos=_random_pose(key, m, d.qpos)), info
 
@@ -130,12 +119,12 @@ def _initialize_swim(key, m, d):
 
 def _upright(m, d):
   """Projection of the torso's z-axis on the world's z-axis."""
-  return d.xmat[_body(m, "torso"), 2, 2]
+  return d.xmat[names.body_id(m, "torso"), 2, 2]
 
 
 def _mouth_to_target(m, d, info):
   """The mouth → target vector in the mouth geom's frame."""
-  mouth = _geom(m, "mouth")
+  mouth = names.geom_id(m, "mouth")
   # The target geom is attached to the world body: world position = geom_pos.
   to_target = info[_TARGET_POS] - d.geom_xpos[mouth]
   return to_target @ d.geom_xmat[mouth]
@@ -157,7 +146,7 @@ def _reward_upright(m, d, info):
 def _reward_swim(m, d, info):
   # Constant sizes (dm_control never changes them): static tolerance bounds.
   size = np.asarray(m.geom_size)
-  radii = float(size[_geom(m, "mouth"), 0] + size[_geom(m, "target"), 0])
+  radii = float(size[names.geom_id(m, "mouth"), 0] + size[names.geom_id(m, "target"), 0])
   in_target = tolerance(jnp.linalg.norm(_mouth_to_target(m, d, info)),
                         bounds=(0., radii), margin=2 * radii)
   is_upright = 0.5 * (_upright(m, d) + 1)

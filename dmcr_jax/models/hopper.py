@@ -18,10 +18,8 @@ import collections
 import functools
 
 import jax.numpy as jnp
-import mujoco
-import numpy as np
 
-from dmcr_jax.models import randomizers
+from dmcr_jax.models import names, randomizers
 from dmcr_jax.models.base import TaskSpec
 from dmcr_jax.models.rewards import tolerance
 
@@ -31,28 +29,18 @@ _STAND_HEIGHT = 0.6
 _HOP_SPEED = 2
 
 
-def _sensor(m, d, name):
-  i = randomizers.obj_id(m, mujoco.mjtObj.mjOBJ_SENSOR, name)
-  adr, dim = int(np.asarray(m.sensor_adr)[i]), int(np.asarray(m.sensor_dim)[i])
-  return d.sensordata[adr:adr + dim]
-
-
-def _body(m, name):
-  return randomizers.obj_id(m, mujoco.mjtObj.mjOBJ_BODY, name)
-
-
 def _height(m, d):
   """Height of the torso's centre of mass above the foot's."""
-  return d.xipos[_body(m, "torso"), 2] - d.xipos[_body(m, "foot"), 2]
+  return d.xipos[names.body_id(m, "torso"), 2] - d.xipos[names.body_id(m, "foot"), 2]
 
 
 def _speed(m, d):
-  return _sensor(m, d, "torso_subtreelinvel")[0]
+  return names.sensor(m, d, "torso_subtreelinvel")[0]
 
 
 def _touch(m, d):
   return jnp.log1p(jnp.concatenate(
-      [_sensor(m, d, "touch_toe"), _sensor(m, d, "touch_heel")]))
+      [names.sensor(m, d, "touch_toe"), names.sensor(m, d, "touch_heel")]))
 
 
 def _initialize(key, m, d):

@@ -21,12 +21,11 @@ from __future__ import annotations
 import collections
 import functools
 
-import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from dmcr_jax.models import randomizers
+from dmcr_jax.models import names, randomizers
 from dmcr_jax.models.ball_in_cup import rejection_sample
 from dmcr_jax.models.base import TaskSpec
 from dmcr_jax.models.rewards import tolerance
@@ -36,10 +35,6 @@ _CONTROL_TIMESTEP = .025
 _STAND_HEIGHT = 1.4
 _WALK_SPEED = 1.0
 _RUN_SPEED = 10.0
-
-
-def _body(m, name):
-  return randomizers.obj_id(m, mujoco.mjtObj.mjOBJ_BODY, name)
 
 
 def _initialize(key, m, d):
@@ -58,25 +53,23 @@ def _joint_angles(m, d):
 
 
 def _head_height(m, d):
-  return d.xpos[_body(m, "head"), 2]
+  return d.xpos[names.body_id(m, "head"), 2]
 
 
 def _torso_xmat(m, d):
-  return d.xmat[_body(m, "torso")]
+  return d.xmat[names.body_id(m, "torso")]
 
 
 def _extremities(m, d):
-  torso = _body(m, "torso")
-  limbs = [_body(m, side + limb) for side in ("left_", "right_")
+  torso = names.body_id(m, "torso")
+  limbs = [names.body_id(m, side + limb) for side in ("left_", "right_")
            for limb in ("hand", "foot")]
   torso_to_limb = d.xpos[np.array(limbs)] - d.xpos[torso]
   return (torso_to_limb @ d.xmat[torso]).ravel()
 
 
 def _com_velocity(m, d):
-  i = randomizers.obj_id(m, mujoco.mjtObj.mjOBJ_SENSOR, "torso_subtreelinvel")
-  adr, dim = int(m.sensor_adr[i]), int(m.sensor_dim[i])
-  return d.sensordata[adr:adr + dim]
+  return names.sensor(m, d, "torso_subtreelinvel")
 
 
 def _observation(m, d, info):

@@ -14,10 +14,9 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 
-from dmcr_jax.models import randomizers
+from dmcr_jax.models import names
 from dmcr_jax.models.base import TaskSpec
 from dmcr_jax.models.rewards import tolerance
 
@@ -27,11 +26,11 @@ _COSINE_BOUND = float(np.cos(np.deg2rad(_ANGLE_BOUND)))
 
 
 def _pole_xmat(m, d):
-  return d.xmat[randomizers.obj_id(m, mujoco.mjtObj.mjOBJ_BODY, "pole")]
+  return d.xmat[names.body_id(m, "pole")]
 
 
 def _initialize(key, m, d):
-  adr = randomizers.qpos_adr(m, "hinge")
+  adr = names.qpos_adr(m, "hinge")
   angle = jax.random.uniform(key, (), minval=-jnp.pi, maxval=jnp.pi)
   return d.replace(qpos=d.qpos.at[adr].set(angle)), {}
 
@@ -40,7 +39,7 @@ def _observation(m, d, info):
   del info
   xmat = _pole_xmat(m, d)
   return {"orientation": jnp.stack([xmat[2, 2], xmat[0, 2]]),
-          "velocity": d.qvel[randomizers.qvel_adr(m, "hinge")]}
+          "velocity": d.qvel[names.qvel_adr(m, "hinge")]}
 
 
 def _reward(m, d, info):

@@ -1,4 +1,4 @@
-"""JAX ports of `dm_control.suite.utils.randomizers` and small model lookups.
+"""JAX ports of `dm_control.suite.utils.randomizers`.
 
 `randomize_limited_and_rotational_joints` draws the same distribution as
 dm_control's: limited hinges and slides uniform in their range, unlimited hinges
@@ -15,32 +15,6 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 from mujoco import mjx
-
-
-def joint_id(m: mjx.Model, name: str) -> int:
-  """Id of the joint called `name` (raises if absent)."""
-  i = mjx.name2id(m, mujoco.mjtObj.mjOBJ_JOINT, name)
-  if i < 0:
-    raise ValueError(f"No joint named {name!r}.")
-  return int(i)
-
-
-def qpos_adr(m: mjx.Model, name: str) -> int:
-  """Address in `qpos` of the joint called `name`."""
-  return int(np.asarray(m.jnt_qposadr)[joint_id(m, name)])
-
-
-def qvel_adr(m: mjx.Model, name: str) -> int:
-  """Address in `qvel` of the joint called `name`."""
-  return int(np.asarray(m.jnt_dofadr)[joint_id(m, name)])
-
-
-def obj_id(m: mjx.Model, obj: mujoco.mjtObj, name: str) -> int:
-  """Id of a named model element (raises if absent)."""
-  i = mjx.name2id(m, obj, name)
-  if i < 0:
-    raise ValueError(f"No {obj.name} named {name!r}.")
-  return int(i)
 
 
 def randomize_limited_and_rotational_joints(key: jax.Array, m: mjx.Model,

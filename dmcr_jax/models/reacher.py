@@ -18,9 +18,8 @@ import functools
 
 import jax
 import jax.numpy as jnp
-import mujoco
 
-from dmcr_jax.models import randomizers
+from dmcr_jax.models import names, randomizers
 from dmcr_jax.models.base import TaskSpec
 
 _TIME_LIMIT = 20.0
@@ -31,16 +30,12 @@ _TARGET_POS = "geom_pos:target"
 _TARGET_SIZE = "geom_size:target"
 
 
-def _geom(m, name: str) -> int:
-  return randomizers.obj_id(m, mujoco.mjtObj.mjOBJ_GEOM, name)
-
-
 def _initialize(key, m, d, target_size: float):
   k_joints, k_angle, k_radius = jax.random.split(key, 3)
   qpos = randomizers.randomize_limited_and_rotational_joints(k_joints, m, d.qpos)
   angle = jax.random.uniform(k_angle, minval=0., maxval=2 * jnp.pi)
   radius = jax.random.uniform(k_radius, minval=.05, maxval=.20)
-  target = _geom(m, "target")
+  target = names.geom_id(m, "target")
   pos = jnp.asarray(m.geom_pos)[target].at[0].set(radius * jnp.sin(angle))
   pos = pos.at[1].set(radius * jnp.cos(angle))
   size = jnp.asarray(m.geom_size)[target].at[0].set(target_size)
@@ -50,7 +45,7 @@ def _initialize(key, m, d, target_size: float):
 
 def _finger_to_target(m, d, info):
   # The target geom is attached to the world body: world position = geom_pos.
-  return info[_TARGET_POS][:2] - d.geom_xpos[_geom(m, "finger"), :2]
+  return info[_TARGET_POS][:2] - d.geom_xpos[names.geom_id(m, "finger"), :2]
 
 
 def _observation(m, d, info):
@@ -59,7 +54,7 @@ def _observation(m, d, info):
 
 
 def _reward(m, d, info):
-  radii = info[_TARGET_SIZE][0] + m.geom_size[_geom(m, "finger"), 0]
+  radii = info[_TARGET_SIZE][0] + m.geom_size[names.geom_id(m, "finger"), 0]
   dist = jnp.linalg.norm(_finger_to_target(m, d, info))
   # `tolerance` needs static bounds; with margin 0 it is this indicator.
   return jnp.where((dist >= 0) & (dist <= radii), 1.0, 0.0)

@@ -16,11 +16,7 @@ from __future__ import annotations
 import collections
 import functools
 
-import jax.numpy as jnp
-import mujoco
-import numpy as np
-
-from dmcr_jax.models import randomizers
+from dmcr_jax.models import names, randomizers
 from dmcr_jax.models.base import TaskSpec
 from dmcr_jax.models.rewards import tolerance
 
@@ -31,26 +27,16 @@ _WALK_SPEED = 1
 _RUN_SPEED = 8
 
 
-def _sensor(m, d, name):
-  i = randomizers.obj_id(m, mujoco.mjtObj.mjOBJ_SENSOR, name)
-  adr, dim = int(np.asarray(m.sensor_adr)[i]), int(np.asarray(m.sensor_dim)[i])
-  return d.sensordata[adr:adr + dim]
-
-
-def _body(m, name):
-  return randomizers.obj_id(m, mujoco.mjtObj.mjOBJ_BODY, name)
-
-
 def _torso_upright(m, d):
-  return d.xmat[_body(m, "torso"), 2, 2]
+  return d.xmat[names.body_id(m, "torso"), 2, 2]
 
 
 def _torso_height(m, d):
-  return d.xpos[_body(m, "torso"), 2]
+  return d.xpos[names.body_id(m, "torso"), 2]
 
 
 def _horizontal_velocity(m, d):
-  return _sensor(m, d, "torso_subtreelinvel")[0]
+  return names.sensor(m, d, "torso_subtreelinvel")[0]
 
 
 def _initialize(key, m, d):

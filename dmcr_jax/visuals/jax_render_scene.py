@@ -35,6 +35,7 @@ import mujoco
 import numpy as np
 from flax import struct
 
+from dmcr_jax.models.names import find_id
 from dmcr_jax.visuals import render_model as rmod
 
 # Geom types the ray caster intersects (mjtGeom values).
@@ -326,7 +327,7 @@ def build_scene(rm: rmod.RenderModel, camera: int | str = 0) -> Scene:
       other than fixed / track / trackcom.
   """
   m = rm.model
-  cam = camera if isinstance(camera, (int, np.integer)) else mujoco.mj_name2id(
+  cam = camera if isinstance(camera, (int, np.integer)) else find_id(
       m, mujoco.mjtObj.mjOBJ_CAMERA, camera)
   if not 0 <= cam < m.ncam:
     raise ValueError(f"No camera {camera!r} in the {rm.domain} model.")
@@ -366,7 +367,7 @@ def build_scene(rm: rmod.RenderModel, camera: int | str = 0) -> Scene:
   for key in rm_variables(rm):
     field, name = key.split(":", 1)
     kind = _GEOM if field.startswith("geom") else _SITE
-    i = mujoco.mj_name2id(m, kind, name)
+    i = find_id(m, kind, name)
     if (kind, i) in objs:
       variables.append((key, field, objs.index((kind, i))))
   # lights

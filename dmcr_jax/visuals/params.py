@@ -26,7 +26,6 @@ host in float64 when a look is applied (`render_model.prepare`).
 from __future__ import annotations
 
 import functools
-import importlib
 import math
 from typing import Any, Iterable
 
@@ -36,6 +35,7 @@ import mujoco
 import numpy as np
 from flax import struct
 
+from dmcr_jax.models.names import obj_id, suite_model
 from dmcr_jax.visuals import ranges as R
 from dmcr_jax.visuals.factors import (FACTOR_IDS, FACTORS, active_factors,
                                       check_domain)
@@ -111,21 +111,6 @@ class VisualParams:
 
 
 @functools.cache
-def dm_control_model(domain: str) -> mujoco.MjModel:
-  """dm_control's suite model for `domain` (compiled once, cached)."""
-  xml, assets = importlib.import_module(
-      f"dm_control.suite.{domain}").get_model_and_assets()
-  return mujoco.MjModel.from_xml_string(xml, assets)
-
-
-def _id(model, obj, name: str) -> int:
-  i = mujoco.mj_name2id(model, obj, name)
-  if i < 0:
-    raise ValueError(f"No {obj.name} named {name!r} in the model.")
-  return i
-
-
-@functools.cache
 def defaults(domain: str) -> dict[str, np.ndarray]:
   """dm_control's default value of every `VisualParams` field for `domain`.
 
@@ -137,12 +122,12 @@ def defaults(domain: str) -> dict[str, np.ndarray]:
   """
   domain = check_domain(domain)
   r = R.DOMAIN_RANGES[domain]
-  m = dm_control_model(domain)
+  m = suite_model(domain)
   O = mujoco.mjtObj
-  cam = _id(m, O.mjOBJ_CAMERA, r.camera)
-  light = _id(m, O.mjOBJ_LIGHT, r.light)
-  floor = _id(m, O.mjOBJ_GEOM, r.floor)
-  mat = lambda names: m.mat_rgba[_id(m, O.mjOBJ_MATERIAL, names[0])]
+  cam = obj_id(m, O.mjOBJ_CAMERA, r.camera)
+  light = obj_id(m, O.mjOBJ_LIGHT, r.light)
+  floor = obj_id(m, O.mjOBJ_GEOM, r.floor)
+  mat = lambda names: m.mat_rgba[obj_id(m, O.mjOBJ_MATERIAL, names[0])]
   hl = m.vis.headlight
   f32 = lambda x: np.asarray(x, np.float32).copy()
   return {
@@ -323,9 +308,8 @@ def sample(domain: str, seeds: Any, vary: str | Iterable[str] | None = "all", *,
            num_backgrounds: int = NUM_BACKGROUNDS) -> VisualParams:
   """Builds the `VisualParams` of a batch of visual seeds.
 
-  Jittable (seeds may be traced; the configuration is static) and fast: the
-  draws are a vmapped threefry computation (100,000 seeds take a few tens of
-  milliseconds on a CPU once compiled).
+  Jittable (seeds may be traced; the configuration is static): the draws are a
+  vmapped threefry computation.
 
   Args:
     domain: a DMCR domain ("walker") or task name ("walker-walk").

@@ -40,17 +40,16 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import importlib
 import math
 from typing import Any, Mapping
 
 import mujoco
 import numpy as np
 
+from dmcr_jax.models.names import FIELD_OBJECTS, obj_id, suite_model, suite_xml
 from dmcr_jax.visuals import ranges as R
 from dmcr_jax.visuals.factors import check_domain
-from dmcr_jax.visuals.params import (FACTOR_INDEX, VisualParams, defaults,
-                                     dm_control_model, sample)
+from dmcr_jax.visuals.params import FACTOR_INDEX, VisualParams, defaults, sample
 from dmcr_jax.visuals.textures import TextureBank, load_bank
 
 _O = mujoco.mjtObj
@@ -109,31 +108,18 @@ def _copy_model(m: mujoco.MjModel) -> mujoco.MjModel:
   return copy.copy(m)
 
 
-def _suite_xml(domain: str) -> tuple[str, dict[str, bytes]]:
-  xml, assets = importlib.import_module(
-      f"dm_control.suite.{domain}").get_model_and_assets()
-  return (xml.decode() if isinstance(xml, bytes) else xml), dict(assets)
-
-
-def _id(m, obj, name: str) -> int:
-  i = mujoco.mj_name2id(m, obj, name)
-  if i < 0:
-    raise ValueError(f"No {obj.name} named {name!r} in the model.")
-  return i
-
-
 def _compile(domain: str, bank: TextureBank) -> mujoco.MjModel:
   r = R.DOMAIN_RANGES[domain]
-  base = dm_control_model(domain)
+  base = suite_model(domain)
   n_tex = base.ntex + bank.num_floors + bank.num_backgrounds
   n_mat = base.nmat + bank.num_floors
   if n_tex > MAX_TEXTURES or n_mat > MAX_MATERIALS:
     raise ValueError(
         f"Bank too large for MuJoCo's renderer: {n_tex} textures (max "
         f"{MAX_TEXTURES}) and {n_mat} materials (max {MAX_MATERIALS}).")
-  xml, assets = _suite_xml(domain)
+  xml, assets = suite_xml(domain)
   spec = mujoco.MjSpec.from_string(xml, include=assets)
-  floor_mat = base.geom_matid[_id(base, _O.mjOBJ_GEOM, r.floor)]
+  floor_mat = base.geom_matid[obj_id(base, _O.mjOBJ_GEOM, r.floor)]
   rep = 2.0 / r.floor_tile          # texuniform: one repeat per 2/texrepeat metres
   S = bank.floors.shape[1]
   W = bank.backgrounds.shape[2]
@@ -168,7 +154,7 @@ def _compile(domain: str, bank: TextureBank) -> mujoco.MjModel:
 
 
 def _check_same_physics(domain: str, m: mujoco.MjModel) -> None:
-  base = dm_control_model(domain)
+  base = suite_model(domain)
   for f in ("nq", "nv", "nu", "na", "nbody", "njnt", "ngeom", "nsite", "ncam",
             "nlight", "ntendon", "nsensor", "neq"):
     if getattr(base, f) != getattr(m, f):
@@ -210,14 +196,14 @@ def build_render_model(domain: str, bank: TextureBank | None = None) -> RenderMo
   if key in _MODELS:
     return _MODELS[key]
   r = R.DOMAIN_RANGES[domain]
-  base = dm_control_model(domain)
+  base = suite_model(domain)
   m = _compile(domain, bank)
   _check_same_physics(domain, m)
-  cam = _id(m, _O.mjOBJ_CAMERA, r.camera)
-  light = _id(m, _O.mjOBJ_LIGHT, r.light)
-  floor = _id(m, _O.mjOBJ_GEOM, r.floor)
+  cam = obj_id(m, _O.mjOBJ_CAMERA, r.camera)
+  light = obj_id(m, _O.mjOBJ_LIGHT, r.light)
+  floor = obj_id(m, _O.mjOBJ_GEOM, r.floor)
   skies = [i for i in range(base.ntex) if base.tex_type[i] == _SKYBOX]
-  mats = lambda names: np.array([_id(m, _O.mjOBJ_MATERIAL, n) for n in names])
+  mats = lambda names: np.array([obj_id(m, _O.mjOBJ_MATERIAL, n) for n in names])
   dflt = {
       "mat_rgba": m.mat_rgba.copy(), "mat_reflectance": m.mat_reflectance.copy(),
       "floor_matid": int(m.geom_matid[floor]),
@@ -474,9 +460,6 @@ def apply(rm: RenderModel, looks: Looks | VisualParams, index: int = 0,
 # The reference renderer
 # ---------------------------------------------------------------------------
 
-_VARIABLE_OBJ = {"geom": _O.mjOBJ_GEOM, "site": _O.mjOBJ_SITE, "body": _O.mjOBJ_BODY,
-                 "mat": _O.mjOBJ_MATERIAL, "cam": _O.mjOBJ_CAMERA,
-                 "light": _O.mjOBJ_LIGHT}
 
 
 class FrameRenderer:
@@ -519,10 +502,10 @@ class FrameRenderer:
       if ":" not in key:
         continue
       field, name = key.split(":", 1)
-      obj = _VARIABLE_OBJ.get(field.split("_")[0])
+      obj = FIELD_OBJECTS.get(field.split("_")[0])
       if obj is None or not hasattr(m, field):
         raise ValueError(f"Unsupported model variable {key!r}.")
-      i = _id(m, obj, name)
+      i = obj_id(m, obj, name)
       arr = getattr(m, field)
       self._touched[(field, i)] = np.array(arr[i])
       arr[i] = np.asarray(value)

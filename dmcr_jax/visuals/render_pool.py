@@ -38,15 +38,13 @@ import mujoco
 import numpy as np
 
 from dmcr_jax.checks import positive_int
+from dmcr_jax.models.names import FIELD_OBJECTS, find_id
 from dmcr_jax.visuals import render_model as rmod
 from dmcr_jax.visuals.params import VisualParams
 from dmcr_jax.visuals.pool import ArraySpec, WorkerPool
 from dmcr_jax.visuals.tiled import TiledRenderer, check_quality, prepare_kinematics
 
 GL_BACKENDS = ("egl", "osmesa")
-_OBJ = {"geom": mujoco.mjtObj.mjOBJ_GEOM, "site": mujoco.mjtObj.mjOBJ_SITE,
-        "body": mujoco.mjtObj.mjOBJ_BODY, "mat": mujoco.mjtObj.mjOBJ_MATERIAL,
-        "cam": mujoco.mjtObj.mjOBJ_CAMERA, "light": mujoco.mjtObj.mjOBJ_LIGHT}
 
 
 def default_gl() -> str:
@@ -75,10 +73,10 @@ def _variable_specs(model: mujoco.MjModel, keys) -> dict[str, tuple[str, int, tu
   out = {}
   for key in keys:
     field, name = key.split(":", 1)
-    obj = _OBJ.get(field.split("_")[0])
+    obj = FIELD_OBJECTS.get(field.split("_")[0])
     if obj is None or not hasattr(model, field):
       raise ValueError(f"Unsupported model variable {key!r}.")
-    i = mujoco.mj_name2id(model, obj, name)
+    i = find_id(model, obj, name)
     if i < 0:
       raise ValueError(f"Model variable {key!r}: no {field.split('_')[0]} named {name!r}.")
     out[key] = (field, i, tuple(np.shape(getattr(model, field)[i])))
@@ -97,9 +95,9 @@ def shift_stacks(out: np.ndarray, prev: np.ndarray) -> None:
 
   Flat, each byte of `prev` goes 3 places back: every pixel's later frames land
   where its earlier ones were, and its newest frame's 3 channels receive the next
-  pixel's oldest frame, which the caller then overwrites with the new frame. The
-  strided copy (6 bytes of every 9) took 145 ms for 1,024 84×84 stacks of 3 in
-  one process on the H100 box; contiguous, it is a memmove.
+  pixel's oldest frame, which the caller then overwrites with the new frame. A
+  strided copy would touch 6 bytes of every 9; contiguous, it is a memmove
+  (benchmarks/results/env_h100.md compares the two).
 
   Args:
     out, prev: C-contiguous uint8 (n, H, W, 3·k) stacks, distinct buffers.

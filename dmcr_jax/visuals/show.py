@@ -68,17 +68,15 @@ def physics_state(physics, domain: str):
     target, finger-spin's hidden target and tip sites).
   """
   import mujoco
-  from dmcr_jax.visuals.params import dm_control_model
-  base = dm_control_model(domain)
+  from dmcr_jax.models.names import FIELD_OBJECTS, suite_model
+  base = suite_model(domain)
   variables = {}
-  objs = {"geom": mujoco.mjtObj.mjOBJ_GEOM, "site": mujoco.mjtObj.mjOBJ_SITE,
-          "body": mujoco.mjtObj.mjOBJ_BODY}
   for field in ("geom_pos", "geom_quat", "geom_size", "geom_rgba", "site_pos",
                 "site_quat", "site_size", "site_rgba", "body_pos", "body_quat"):
     obj = field.split("_")[0]
     now, orig = np.asarray(getattr(physics.model, field)), getattr(base, field)
     for i in np.nonzero(np.any(now != orig, axis=-1))[0]:
-      name = mujoco.mj_id2name(base, objs[obj], int(i))
+      name = mujoco.mj_id2name(base, FIELD_OBJECTS[obj], int(i))
       if name:
         variables[f"{field}:{name}"] = now[i].copy()
   return physics.data.qpos.copy(), variables

@@ -16,7 +16,7 @@ output is fixed by its specification), pixel noise from an integer hash
 exactly, so the bytes are the same on every machine (tests check hashes). No
 transcendental functions, reductions or library interpolation touch pixels.
 
-The bank is built once (a progress bar shows; about 20–40 s on two cores) and
+The bank is built once (with a progress bar) and
 cached as `.npy` files under `$XDG_CACHE_HOME/dmcr_jax` (or `~/.cache/dmcr_jax`)
 in a folder named by `VERSION`. `load_bank(floor_dir=..., background_dir=...)`
 uses a user's image folders instead (files sorted by name, so a seed means the

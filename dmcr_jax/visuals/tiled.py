@@ -29,6 +29,8 @@ from typing import Callable
 import mujoco
 import numpy as np
 
+from dmcr_jax.models.names import find_id
+
 # preset -> (shadow map size or None to keep the model's, shadows on, reflections on)
 QUALITY: dict[str, tuple[int | None, bool, bool]] = {
     "exact": (None, True, True),
@@ -78,7 +80,7 @@ class TiledRenderer:
     if self.height < 1 or self.width < 1:
       raise ValueError(f"frame size must be positive, got {height}x{width}")
     if isinstance(camera, str):
-      cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
+      cam_id = find_id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
     else:
       cam_id = int(camera)
     if not 0 <= cam_id < model.ncam:
@@ -93,9 +95,9 @@ class TiledRenderer:
     self.buffer_size = (bw, bh)
     apply_quality(model, quality)
     _, shadows, reflections = QUALITY[quality]
-    # MuJoCo's (multisampled) offscreen buffer only ever holds one frame: sized
-    # to the frame it renders 20% faster on an H100 with 16 processes than sized
-    # to the tile buffer (benchmarks/results/render_variants_h100.md).
+    # MuJoCo's (multisampled) offscreen buffer only ever holds one frame, so it is
+    # sized to the frame, not to the tile buffer, which renders faster
+    # (benchmarks/results/render_variants_h100.md).
     model.vis.global_.offwidth, model.vis.global_.offheight = self.width, self.height
     self._gl = mujoco.GLContext(max(bw, 1), max(bh, 1))
     self._gl.make_current()
