@@ -617,7 +617,7 @@ class JaxPixelVectorEnv(_PixelEnvBase):
 
   def _reset(self, key):
     # The pool env's jitted `physics_env.init` (shared compilation), then the
-    # looks gathered on device and fresh stacks (`jax_env.start`, as `set_state`).
+    # looks made on the device and fresh stacks (`jax_env.start`, as `set_state`).
     # The same as `jax_env.reset(self.functional, key)`.
     es = self._init(key, self._seed_arg)
     physics = jax.device_put(es, self._render_on)

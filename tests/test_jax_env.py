@@ -1,6 +1,6 @@
 """`make(..., renderer="jax")` and `train --renderer jax`: the JAX env's physics equal
 the pool env's, its frames are close to MuJoCo's, NEXT_STEP auto-reset and frame
-stacks, determinism, few-shot looks gathered on device, bad arguments, and the
+stacks, determinism, few-shot looks made on the device, bad arguments, and the
 device training loop (chunks, log, checkpoints, resume, the host loop's update count).
 
 Everything is sized alike (pendulum, 2 envs, 16 px, frame skip 100, the few-shot
@@ -118,7 +118,7 @@ def test_autoreset_and_frame_stacks_at_episode_boundaries(rollouts, envs):
   np.testing.assert_array_equal(envs[0].render(), obs[-1][..., -3:])
 
 
-def test_few_shot_looks_are_drawn_in_range_and_gathered_on_device(rollouts, envs):
+def test_few_shot_looks_are_drawn_in_range_and_made_on_the_device(rollouts, envs):
   jenv = envs[0]
   seeds = np.stack([i["visual_seed"] for i in rollouts[0]["info"]])
   assert RANGE.contains_all(seeds)
