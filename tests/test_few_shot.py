@@ -18,7 +18,7 @@ import pytest
 
 import dmcr_jax
 from dmcr_jax import jax_env
-from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, EnvRanges, SeedRange, levels
+from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, EnvRanges, levels
 from train import evaluate as ev
 from train import loop, sac
 from train.__main__ import parse
