@@ -9,8 +9,8 @@ the arguments, spaces, visual seeds, auto-reset, observations and info described
 below (`_PixelEnvBase`); `workers`, `quality`, `gl` and `copy_obs` are the pool's,
 `shadows`, `reflection`, `render_chunk`, `render_kernel` and `obs_on_device` the
 JAX renderer's,
-and either refuses the other's. With "jax", a `SeedRange` may hold at most
-`jax_env.MAX_RANGE_LOOKS` seeds (their looks are precomputed on the device).
+and either refuses the other's. With "jax" a look is made on the device from its
+seed (`jax_env`), so a range of any size costs no host memory or time.
 
 Per agent step of the pool env, for the whole batch:
 1. physics — one jitted call (`physics_env.step`): frame skip, rewards summed,
@@ -51,7 +51,10 @@ Visual seeds (`visual_seeds=`):
 - N ints: a fixed look per env;
 - a `SeedRange` (few-shot): every episode of every env draws its seed from the
   range, e.g. `levels(1000)` = seeds [0, 1000); evaluation draws from
-  `TEST_SEEDS`, which no training range may overlap (see `visuals.levels`).
+  `TEST_SEEDS`, which no training range may overlap (see `visuals.levels`);
+- N `SeedRange`s (or an `EnvRanges`): env i draws every episode's seed from its
+  own range (e.g. agents with different few-shot ranges in one batch).
+A seed's look depends on the seed (and `vary`) alone, whatever range drew it.
 
 Observations are uint8 (N, H, W, 3·frame_stack), channels-last, oldest frame
 first. `info` holds, per env: "state" (dm_control's state features, flat),
@@ -78,7 +81,7 @@ from dmcr_jax import jax_env, models, physics_env
 from dmcr_jax.checks import positive_int
 from dmcr_jax.visuals import render_model as rmod
 from dmcr_jax.visuals.factors import check_vary
-from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, SeedRange
+from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, EnvRanges, SeedRange
 from dmcr_jax.visuals.params import check_seeds
 from dmcr_jax.visuals.render_pool import RenderPool, default_workers
 
@@ -132,14 +135,30 @@ def check_camera(model, camera, task: str) -> None:
                      f"cameras ({', '.join(names)}), got {camera!r}")
 
 
-def _seed_source(visual_seeds, num_envs: int) -> SeedRange | np.ndarray:
+def _check_one_side(r: SeedRange) -> SeedRange:
+  """`r` if it lies inside `TRAIN_SEEDS` or inside `TEST_SEEDS`, else ValueError."""
+  if not any(s.start <= r.start and r.stop <= s.stop for s in (TRAIN_SEEDS, TEST_SEEDS)):
+    raise ValueError(f"visual_seeds {r} straddles the training range "
+                     f"{TRAIN_SEEDS} and the held-out test range {TEST_SEEDS}; "
+                     "use a range inside one of them")
+  return r
+
+
+def _seed_source(visual_seeds, num_envs: int) -> SeedRange | EnvRanges | np.ndarray:
   if isinstance(visual_seeds, SeedRange):
-    inside = [r for r in (TRAIN_SEEDS, TEST_SEEDS)
-              if r.start <= visual_seeds.start and visual_seeds.stop <= r.stop]
-    if not inside:
-      raise ValueError(f"visual_seeds {visual_seeds} straddles the training range "
-                       f"{TRAIN_SEEDS} and the held-out test range {TEST_SEEDS}; "
-                       "use a range inside one of them")
+    return _check_one_side(visual_seeds)
+  if isinstance(visual_seeds, (list, tuple)) and any(
+      isinstance(v, SeedRange) for v in visual_seeds):
+    if not all(isinstance(v, SeedRange) for v in visual_seeds):
+      raise ValueError("visual_seeds mixes SeedRanges and fixed seeds; pass N ints or N "
+                       "SeedRanges (one per env)")
+    visual_seeds = EnvRanges(tuple(visual_seeds))
+  if isinstance(visual_seeds, EnvRanges):
+    if len(visual_seeds) != num_envs:
+      raise ValueError(f"visual_seeds must hold one SeedRange per env ({num_envs}), got "
+                       f"{len(visual_seeds)}")
+    for r in visual_seeds.ranges:
+      _check_one_side(r)
     return visual_seeds
   seeds = np.asarray(check_seeds(visual_seeds))
   if np.ndim(visual_seeds) == 0:
@@ -151,14 +170,14 @@ def _seed_source(visual_seeds, num_envs: int) -> SeedRange | np.ndarray:
 
 
 @functools.lru_cache(maxsize=64)
-def _physics_fns(task, num_envs: int, frame_skip: int, seed_range: SeedRange | None,
-                 donate: bool):
+def _physics_fns(task, num_envs: int, frame_skip: int,
+                 seed_range: SeedRange | EnvRanges | None, donate: bool):
   """Jitted (init, step) for N envs of `task`, shared by every env built alike.
 
   `models.load` returns one `Task` object per name and solver budget, so envs
   with the same task, size, frame skip and seed kind reuse one compilation (an
   evaluation's or a test's second env compiles nothing). Fixed visual seeds are
-  the functions' last argument; a `SeedRange` (seed_range) is static.
+  the functions' last argument; a `SeedRange` or `EnvRanges` (seed_range) is static.
   """
   pick = (lambda arg: arg) if seed_range is None else (lambda arg: seed_range)
   init = jax.jit(lambda key, arg: physics_env.init(task, pick(arg), key, num_envs))
@@ -213,7 +232,7 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     check_reset_seed(seed, num_envs)
     check_vary(domain, vary)  # validates `vary`, listing the factors
     self.task_name, self.domain, self.vary, self.camera = task, domain, vary, camera
-    self.seeds = self._check_seeds(_seed_source(visual_seeds, n))
+    self.seeds = _seed_source(visual_seeds, n)
     self.task = models.load(task, solver_iterations, ls_iterations)
     check_camera(self.task.mj_model, camera, task)
     self.num_envs = n
@@ -231,14 +250,10 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     self._pending = None
     self.reset_timings()
 
-  def _check_seeds(self, seeds):
-    """Hook: a renderer's own limits on the seed source (returned unchanged)."""
-    return seeds
-
   def _use_physics(self) -> None:
     """Points `_init`/`_step` at the current seed source. Fixed seeds are a traced
-    argument (one compilation serves any of them); a `SeedRange` is static."""
-    fixed = not isinstance(self.seeds, SeedRange)
+    argument (one compilation serves any of them); a range is static."""
+    fixed = not isinstance(self.seeds, (SeedRange, EnvRanges))
     self._init, self._step = _physics_fns(self.task, self.num_envs, self.frame_skip,
                                           None if fixed else self.seeds,
                                           self._physics_on.platform != "cpu")
@@ -257,7 +272,8 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     conditions with one env. The running episodes end: call `reset` next.
 
     Args:
-      visual_seeds: as for `make` (one int, one per env, or a `SeedRange`).
+      visual_seeds: as for `make` (one int, one per env, a `SeedRange`, or one
+        `SeedRange` per env).
       vary: the factors the seeds change (as for `make`); None keeps the current.
 
     Raises:
@@ -265,7 +281,7 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     """
     vary = self.vary if vary is None else vary
     check_vary(self.domain, vary)
-    seeds = self._check_seeds(_seed_source(visual_seeds, self.num_envs))
+    seeds = _seed_source(visual_seeds, self.num_envs)
     self.seeds, self.vary = seeds, vary
     self._use_seeds()
     self._es = self._obs = self._pending = None
@@ -390,7 +406,7 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     self.timed_steps = 0
 
   def __repr__(self):
-    seeds = (self.seeds if isinstance(self.seeds, SeedRange)
+    seeds = (self.seeds if isinstance(self.seeds, (SeedRange, EnvRanges))
              else f"fixed {np.unique(self.seeds)[:4].tolist()}…")
     return (f"{type(self).__name__}({self.task_name!r}, num_envs={self.num_envs}, "
             f"visual_seeds={seeds}, vary={self.vary!r}, frame_skip={self.frame_skip}, "
@@ -595,12 +611,9 @@ class JaxPixelVectorEnv(_PixelEnvBase):
     """The current `jax_env.PixelState` (None before reset)."""
     return self._ps
 
-  def _check_seeds(self, seeds):
-    return jax_env.check_range(seeds) if isinstance(seeds, SeedRange) else seeds
-
   def _use_seeds(self) -> None:
     """Builds the functional env for the current seeds: fixed seeds only replace
-    its look table (nothing recompiles); a `SeedRange` is static."""
+    its look table (nothing recompiles); a range is static."""
     self._use_physics()
     self.functional = jax_env.make_env(
         self.task, self.num_envs, self.seeds, self.vary, self.frame_skip, self.frame_stack,
@@ -612,7 +625,7 @@ class JaxPixelVectorEnv(_PixelEnvBase):
 
   def _reset(self, key):
     # The pool env's jitted `physics_env.init` (shared compilation), then the
-    # looks gathered on device and fresh stacks (`jax_env.start`, as `set_state`).
+    # looks made on the device and fresh stacks (`jax_env.start`, as `set_state`).
     # The same as `jax_env.reset(self.functional, key)`.
     es = self._init(key, self._seed_arg)
     physics = jax.device_put(es, self._render_on)
@@ -621,8 +634,8 @@ class JaxPixelVectorEnv(_PixelEnvBase):
 
   def _start_from(self, es: physics_env.EnvState):
     """Fresh stacks from `es`; each env's look follows its `visual_seed`."""
-    rm, scene = jax_env.scene_of(self.domain, self.camera)
-    look = jax_env.host_looks(scene, rm, jax.device_get(es.visual_seed), self.vary)
+    look = jax_env.make_looks(self.functional.maker,
+                              jax.device_put(es.visual_seed, self._render_on))
     return self._adopt(jax_env.start(self.functional, jax.device_put(es, self._render_on),
                                      look), es=es)
 
@@ -661,9 +674,9 @@ def make(task: str, num_envs: int = 1, visual_seeds: Any = 0,
   Args:
     task: one of `dmcr_jax.ALL_TASKS`, e.g. "walker-walk".
     num_envs: N ≥ 1.
-    visual_seeds: an int (every env), N ints (one per env), or a `SeedRange`
-      drawn from at every reset (few-shot: `levels(1000)`; test: `TEST_SEEDS`;
-      with renderer="jax" at most `jax_env.MAX_RANGE_LOOKS` seeds).
+    visual_seeds: an int (every env), N ints (one per env), a `SeedRange`
+      drawn from at every reset (few-shot: `levels(1000)`; test: `TEST_SEEDS`),
+      or N `SeedRange`s (an `EnvRanges`): env i draws from its own.
     vary: factors the visual seeds change ("all", "none", "floor,background", …;
       named factors must apply to the task's domain, `visuals.factors.APPLICABLE`).
     frame_skip: control steps per agent step, rewards summed (default: the
@@ -702,7 +715,8 @@ def make(task: str, num_envs: int = 1, visual_seeds: Any = 0,
       message lists the valid ones), a factor that does not apply to the task's
       domain or an empty `vary`, num_envs or workers ≤ 0, a seed outside
       [0, 2**32), a visual-seed count other than 1 or N, an option of the other
-      renderer, a SeedRange too large for renderer="jax".
+      renderer, a range straddling `TRAIN_SEEDS` and `TEST_SEEDS`, ranges mixed
+      with fixed seeds.
   """
   check_renderer_name(renderer)
   other = _JAX_ONLY if renderer == "pool" else _POOL_ONLY

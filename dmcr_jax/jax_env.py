@@ -25,13 +25,14 @@ returns the new episode's first frame with reward 0), stacks of uint8
 (N, H, W, 3·frame_stack) frames, oldest first, a reset env's stack being its
 first frame repeated.
 
-Visual seeds (`make_env(visual_seeds=...)`): fixed seeds (one per env) give a
-table of N looks, row i for env i. A few-shot `SeedRange` gives a table of one
-look per seed of the range, precomputed once on the host (`render_model.prepare`
-+ `device_looks`; host time and device memory linear in the range's length); on
-device, an env that resets draws its seed (`physics_env`) and gathers
-row `seed − range.start`. Ranges of more than `MAX_RANGE_LOOKS` seeds are
-refused: draw test looks from a fixed list instead (`TEST_SEEDS.first(n)`).
+Visual seeds (`make_env(visual_seeds=...)`): a look is made on the device from
+its seed alone (`jax_render_scene.LookMaker`: the seed's `VisualParams` and
+what `render_model.prepare` derives from them, in float32), so the same seed
+shows the same look in every env, range and batch. Fixed seeds (one per env)
+give a table of N looks, row i for env i, made once. A few-shot `SeedRange`,
+or an `EnvRanges` (a range per env), keeps no table: an env that resets draws
+its seed (`physics_env`) and its look is made then, so a range of any size
+costs neither host memory nor host time.
 
 The frames are the JAX ray caster's (`dmcr_jax.visuals.jax_render`), close to,
 not equal to, MuJoCo's (see that module's docstring for what differs).
@@ -51,11 +52,8 @@ from dmcr_jax.models.base import Task
 from dmcr_jax.visuals import jax_render as JR
 from dmcr_jax.visuals import jax_render_scene as JS
 from dmcr_jax.visuals import render_model as rmod
-from dmcr_jax.visuals.levels import SeedRange
+from dmcr_jax.visuals.levels import EnvRanges, SeedRange
 
-MAX_RANGE_LOOKS = 100_000
-"""The largest `SeedRange` whose looks `make_env` precomputes (their device memory and
-host work grow with the range's length)."""
 RENDER_CHUNK = 256
 """Default envs per vmapped render chunk above which `render_batch` maps over chunks
 (bounds memory and keeps a chunk's arrays in cache; chunk sizes compared in
@@ -84,11 +82,13 @@ class PixelEnv:
 
   Attributes:
     scene: the domain's `Scene` (objects, lights, camera, texture bank).
-    looks: `DeviceLook` table: (N, …) one row per env for fixed seeds, or one row
-      per seed of `seed_range`.
-    fixed_seeds: int32 (N,) visual seeds (fixed seeds) or None (a range).
+    maker: the `LookMaker` (seeds → looks on the device, for the env's `vary`).
+    looks: `DeviceLook` table of fixed seeds, (N, …) row i for env i; None
+      when the seeds are drawn.
+    fixed_seeds: int32 (N,) visual seeds (fixed seeds) or None (drawn).
     task: static; the `Task`.
-    seed_range: static; the few-shot `SeedRange`, or None.
+    seed_range: static; the few-shot `SeedRange` or `EnvRanges` the seeds are
+      drawn from, or None (fixed seeds).
     num_envs, frame_skip, frame_stack, height, width: static sizes.
     shadows, reflection: static; the ray caster's options (`jax_render.render`).
     render_chunk: static; envs per render chunk (None: all at once).
@@ -97,10 +97,11 @@ class PixelEnv:
       `make_env` (False by default: through XLA).
   """
   scene: JS.Scene
-  looks: JS.DeviceLook
+  maker: JS.LookMaker
+  looks: JS.DeviceLook | None
   fixed_seeds: jax.Array | None
   task: Task = struct.field(pytree_node=False)
-  seed_range: SeedRange | None = struct.field(pytree_node=False)
+  seed_range: SeedRange | EnvRanges | None = struct.field(pytree_node=False)
   num_envs: int = struct.field(pytree_node=False)
   frame_skip: int = struct.field(pytree_node=False)
   frame_stack: int = struct.field(pytree_node=False)
@@ -118,13 +119,12 @@ class PixelEnv:
   def looks_of(self, visual_seed: jax.Array) -> JS.DeviceLook:
     """The looks of envs showing `visual_seed` (int32 (N,), drawn by this env).
 
-    Fixed seeds: the table (row i is env i's seed). A range: rows
-    `visual_seed − start` (clipped to the table).
+    Fixed seeds: the table (row i is env i's seed). Drawn seeds: made from
+    `visual_seed` (`maker`).
     """
     if self.seed_range is None:
       return self.looks
-    rows = jnp.clip(visual_seed - self.seed_range.start, 0, len(self.seed_range) - 1)
-    return self.looks.take(rows)
+    return self.maker(visual_seed)
 
   def render(self, physics: physics_env.EnvState, look: JS.DeviceLook) -> jax.Array:
     """One frame per env, uint8 (N, H, W, 3), of the physics state under `look`."""
@@ -198,7 +198,11 @@ class PixelEnv:
     if self.seed_range is not None:     # fixed seeds keep their look across resets
       pick = lambda new, old: jnp.where(
           resetting.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)
-      look = jax.tree.map(pick, self.looks_of(physics.visual_seed), look)
+      # New looks are made only in steps where some env resets (rare).
+      look = jax.lax.cond(
+          jnp.any(resetting),
+          lambda: jax.tree.map(pick, self.looks_of(physics.visual_seed), look),
+          lambda: look)
     frame = self.render(physics, look)
     shifted = jnp.concatenate([state.obs[..., 3:], frame], axis=-1)
     obs = jnp.where(resetting[:, None, None, None],
@@ -207,7 +211,8 @@ class PixelEnv:
 
 
 def host_looks(scene: JS.Scene, rm: rmod.RenderModel, seeds, vary) -> JS.DeviceLook:
-  """The `DeviceLook` of visual seeds (host work: `sample`, `prepare`, `device_looks`).
+  """The `DeviceLook` of visual seeds made on the host (`sample`, then `prepare` in
+  float64, then `device_looks`): the reference `make_looks` is checked against.
 
   Args:
     scene: the domain's scene.
@@ -222,16 +227,6 @@ def host_looks(scene: JS.Scene, rm: rmod.RenderModel, seeds, vary) -> JS.DeviceL
   return JS.device_looks(scene, rm, rmod.prepare(rm, rm.sample(seeds, vary=vary)))
 
 
-def check_range(seeds: SeedRange) -> SeedRange:
-  """Returns a `SeedRange` the JAX renderer can precompute, else a ValueError."""
-  if len(seeds) > MAX_RANGE_LOOKS:
-    raise ValueError(
-        f"renderer='jax' precomputes one look per seed of a SeedRange and takes at most "
-        f"{MAX_RANGE_LOOKS:,} seeds; {seeds} has {len(seeds):,}. Use a smaller range "
-        "(levels(n)) or fixed seeds (e.g. TEST_SEEDS.first(n), one per env)")
-  return seeds
-
-
 @functools.lru_cache(maxsize=8)
 def scene_of(domain: str, camera: int | str = 0) -> tuple[rmod.RenderModel, JS.Scene]:
   """The domain's render model and `Scene` for `camera` (built once per process)."""
@@ -239,7 +234,7 @@ def scene_of(domain: str, camera: int | str = 0) -> tuple[rmod.RenderModel, JS.S
   return rm, JS.build_scene(rm, camera)
 
 
-def make_env(task: Task, num_envs: int, seeds: SeedRange | np.ndarray, vary,
+def make_env(task: Task, num_envs: int, seeds: SeedRange | EnvRanges | np.ndarray, vary,
              frame_skip: int, frame_stack: int, height: int, width: int, *,
              camera: int | str = 0, shadows: bool = True, reflection: bool = True,
              render_chunk: int | None = None,
@@ -249,8 +244,8 @@ def make_env(task: Task, num_envs: int, seeds: SeedRange | np.ndarray, vary,
   Args:
     task: the `Task` (`models.load`).
     num_envs: N.
-    seeds: a `SeedRange` (few-shot; at most `MAX_RANGE_LOOKS` seeds) or fixed
-      int32 (N,) visual seeds.
+    seeds: a `SeedRange` (few-shot, any size), an `EnvRanges` of N ranges (one
+      per env) or fixed int32 (N,) visual seeds.
     vary: the factors the visual seeds change.
     frame_skip, frame_stack, height, width: as for `dmcr_jax.make`.
     camera: camera id or name (camera 0 is the one the looks move).
@@ -265,26 +260,27 @@ def make_env(task: Task, num_envs: int, seeds: SeedRange | np.ndarray, vary,
     The `PixelEnv`.
 
   Raises:
-    ValueError: a range larger than `MAX_RANGE_LOOKS`, fixed seeds not (N,), or
+    ValueError: fixed seeds not (N,), an `EnvRanges` not of N ranges, or
       `render_kernel` without a GPU.
     NotImplementedError: a scene the ray caster cannot draw (`build_scene`).
   """
   rm, scene = scene_of(task.spec.domain, camera)
-  if isinstance(seeds, SeedRange):
-    check_range(seeds)
-    table = host_looks(scene, rm, np.arange(seeds.start, seeds.stop), vary)
-    fixed = None
-  else:
+  maker = JS.look_maker(scene, rm, vary)
+  drawn = isinstance(seeds, (SeedRange, EnvRanges))
+  if isinstance(seeds, EnvRanges) and len(seeds) != num_envs:
+    raise ValueError(f"EnvRanges must hold one range per env ({num_envs}), got {len(seeds)}")
+  table = fixed = None
+  if not drawn:
     fixed = np.asarray(seeds, np.int32)
     if fixed.shape != (num_envs,):
       raise ValueError(f"fixed visual seeds must have shape ({num_envs},), got {fixed.shape}")
-    table = host_looks(scene, rm, fixed, vary)
     fixed = jnp.asarray(fixed)
+    table = make_looks(maker, fixed)
   render_kernel = JR.use_kernel(render_kernel)
   if render_chunk is None and num_envs > RENDER_CHUNK:
     render_chunk = RENDER_CHUNK
-  return PixelEnv(scene=scene, looks=table, fixed_seeds=fixed, task=task,
-                  seed_range=seeds if isinstance(seeds, SeedRange) else None,
+  return PixelEnv(scene=scene, maker=maker, looks=table, fixed_seeds=fixed, task=task,
+                  seed_range=seeds if drawn else None,
                   num_envs=int(num_envs), frame_skip=int(frame_skip),
                   frame_stack=int(frame_stack), height=int(height), width=int(width),
                   shadows=bool(shadows), reflection=bool(reflection),
@@ -292,6 +288,8 @@ def make_env(task: Task, num_envs: int, seeds: SeedRange | np.ndarray, vary,
 
 
 # Jitted entry points (the env is an argument: its arrays are not baked in as constants).
+make_looks = jax.jit(lambda maker, seeds: maker(seeds))
+"""The `DeviceLook`s of int32 (N,) visual seeds on the device (`LookMaker`)."""
 reset = jax.jit(lambda env, key: env.reset(key))
 start = jax.jit(lambda env, physics, look: env.start(physics, look))
 step = jax.jit(lambda env, state, actions: env.step(state, actions))

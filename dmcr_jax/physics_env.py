@@ -11,7 +11,8 @@ limit (1,000 control steps: 500 agent steps at frame skip 2).
 
 Keys: every env carries its own key. A reset splits it into the env's next key,
 the dynamics key (initial state, `Task.reset`) and a visual key (the next visual
-seed, when seeds are drawn from a `SeedRange`; a fixed seed per env ignores it).
+seed, when seeds are drawn from a `SeedRange` or an `EnvRanges`; a fixed seed
+per env ignores it).
 So a run is fixed by `init`'s key, and an env's looks never influence its
 physics. The host half (`dmcr_jax.env`) renders the pixels.
 """
@@ -24,9 +25,10 @@ import jax.numpy as jnp
 from flax import struct
 
 from dmcr_jax.models.base import State, Task
-from dmcr_jax.visuals.levels import SeedRange
+from dmcr_jax.visuals.levels import EnvRanges, SeedRange
 
-SeedSource = SeedRange | jax.Array  # a range to draw from, or a fixed int32 (N,) seed per env
+SeedSource = SeedRange | EnvRanges | jax.Array
+"""A range to draw from, a range per env, or a fixed int32 (N,) seed per env."""
 
 
 @struct.dataclass
@@ -56,6 +58,8 @@ def _reset_one(task: Task, seeds: SeedSource, key: jax.Array, index: jax.Array):
   key, k_dyn, k_vis = jax.random.split(key, 3)
   if isinstance(seeds, SeedRange):
     seed = seeds.sample(k_vis)
+  elif isinstance(seeds, EnvRanges):
+    seed = seeds.sample(k_vis, index)
   else:
     seed = seeds[index]
   return task.reset(k_dyn), seed, key

@@ -67,7 +67,7 @@ def test_evaluate_refuses_agents_out_of_range(run_without_checkpoint):
 
 def test_train_refuses_bad_arguments_before_creating_the_folder(tmp_path):
   out = str(tmp_path / "run")
-  for args, match in ((["--visual-seeds", "-1"], "visual_seeds must be"),
+  for args, match in ((["--visual-seeds", "-1"], "visual_seeds -1: not a seed in"),
                       (["--resume"], "no run in")):
     code, _, stderr = run(["-m", "train", "--out", out, "--steps", "10"] + args, timeout=120)
     assert_clean_error(code, stderr, "train", match)

@@ -4,7 +4,10 @@
     train --task cartpole-balance --algo curl      # or --algo sac_ae
 
 One agent per seed and augmentation (`--aug drq,cj+drq --seeds 0,1,2`: 6 agents,
-trained together in one process). `--steps` counts the paper's training steps
+trained together in one process), and per training-look range
+(`--visual-seeds levels:1,10,100,1000,10000,all`: one agent per range of the
+first n visual seeds, each drawing a new look at every reset; levels:1 is seed 0,
+dm_control's look; ranges multiply with the seeds and augmentations). `--steps` counts the paper's training steps
 (transitions stored) per agent; with `--num-envs N` an agent collects N per step.
 
 Arguments are checked before anything is compiled. Outputs go to `--out`
@@ -79,7 +82,9 @@ def build_parser() -> argparse.ArgumentParser:
                  help="comma-separated: one agent per seed")
   p.add_argument("--num-envs", type=int, default=d.num_envs, help="envs per agent")
   p.add_argument("--visual-seeds", default=str(d.visual_seeds),
-                 help="an int (fixed look, 0 = dm_control's) or levels:<n> (few-shot)")
+                 help="an int (fixed look, 0 = dm_control's) or levels:<n>[,<n>...] "
+                      "(few-shot: one agent per range of the first n seeds; 'all' = "
+                      "the whole training range; levels:1 = seed 0)")
   p.add_argument("--vary", default=d.vary,
                  help="factors the visual seeds change: all, none or a comma-separated "
                       "subset of camera, light, body, target, floor, background, "

@@ -41,9 +41,9 @@ def _agent(run_dir: str, index: int):
   return cfg, jax.tree.map(lambda x: x[index], stacked), step
 
 
-def _one_training_look(cfg: loop.TrainConfig) -> int:
-  """The run's training look as one seed (a few-shot range's first seed)."""
-  look = loop.parse_visual_seeds(cfg.visual_seeds)
+def _one_training_look(cfg: loop.TrainConfig, agent: int) -> int:
+  """An agent's training look as one seed (a few-shot range's first seed)."""
+  look = cfg.agent_looks()[agent]
   return look if isinstance(look, int) else int(look.start)
 
 
@@ -97,7 +97,7 @@ def encoder_invariance(run_dir: str, out_dir: str, agent: int = 0, looks: int = 
     observations differ from the first held-out one}; and the run's details.
   """
   cfg, state, step = _agent(run_dir, agent)
-  train_look = _one_training_look(cfg)
+  train_look = _one_training_look(cfg, agent)
   seeds = np.concatenate([[train_look], held_out_seeds(looks, seed)])
   result = dict(run_dir=run_dir, agent=agent, checkpoint_step=step, looks=looks,
                 steps=steps, std={}, physical_state_equal={}, looks_differing={})
@@ -143,7 +143,7 @@ def attention_maps(run_dir: str, out_dir: str, agent: int = 0, steps: int = 20,
                    seed: int = 0, quality: str = "exact", workers: int | None = None) -> str:
   """Encoder activation maps for the training look and a changed floor (PNG path)."""
   cfg, state, _ = _agent(run_dir, agent)
-  train_look = _one_training_look(cfg)
+  train_look = _one_training_look(cfg, agent)
   seeds = np.array([train_look, held_out_seeds(1, seed)[0]])
   with _make_env(cfg, 2, seeds, "floor", quality, workers, seed) as env:
     obs = same_state_observations(env, state, steps, seed)
@@ -182,7 +182,7 @@ def episode_video(run_dir: str, out_dir: str, agent: int = 0, looks: int = 4,
   looks, tiled side by side; MP4 (GIF when ffmpeg is missing). Returns the path."""
   import imageio.v2 as imageio
   cfg, state, _ = _agent(run_dir, agent)
-  train_look = _one_training_look(cfg)
+  train_look = _one_training_look(cfg, agent)
   seeds = np.concatenate([[train_look], held_out_seeds(looks - 1, seed)])
   frames = []
   with _make_env(cfg, looks, seeds, vary, quality, workers, seed) as env:

@@ -27,6 +27,14 @@ is compared side by side: per augmentation the mean over its seeds, each
 condition's return and E_G, beside the paper's rows (``"augs"`` in the JSON; one
 row per augmentation in both tables; grouped bars in the chart).
 
+Few-shot runs (`train --visual-seeds levels:1,10,…`, one agent per training-look
+range): every agent meets the same held-out test looks; an agent's "train" return
+is taken at looks drawn from its own range (seeds drawn with the same generator
+seed). The run's generalisation curve follows: test return per condition and
+E_G against the number of training looks (`few_shot.json`, `few_shot.md`,
+`few_shot.png`), with the zero-shot agents' (levels:1, dm_control's look) "all"
+returns as reference lines where the run has them.
+
     evaluate runs/cartpole-balance-drq            # or: python -m train.evaluate …
     evaluate runs/cartpole-balance-drq --invariance --attention --video
 """
@@ -162,13 +170,22 @@ def run_episodes(env, policy, seed: int) -> np.ndarray:
   return np.asarray(info["episode_return"], np.float64)
 
 
-def _train_look(train_cfg: loop.TrainConfig):
-  return loop.parse_visual_seeds(train_cfg.visual_seeds)
-
-
 def _is_default_look(train_look) -> bool:
-  """Whether every training episode showed seed 0's look, which "none" also shows."""
-  return not isinstance(train_look, SeedRange) and bool(np.all(np.asarray(train_look) == 0))
+  """Whether every training episode showed seed 0's look, which "none" also shows
+  (a fixed seed 0, or the range levels:1 = [0, 1))."""
+  if isinstance(train_look, SeedRange):
+    return train_look == SeedRange(0, 1)
+  return bool(np.all(np.asarray(train_look) == 0))
+
+
+def train_look_seeds(train_look, n: int, seed: int) -> np.ndarray:
+  """`n` visual seeds of an agent's training looks, one per env of the train batch:
+  the fixed seed, or draws from its range with a NumPy generator seeded by `seed`
+  (so every agent of a run is measured with one compilation of fixed seeds)."""
+  if isinstance(train_look, SeedRange):
+    rng = np.random.default_rng(seed)
+    return rng.integers(train_look.start, train_look.stop, n).astype(np.int64)
+  return np.full(n, int(train_look), np.int64)
 
 
 def _check_disjoint(test_seeds: np.ndarray, train_look) -> None:
@@ -209,22 +226,24 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
   out_dir = out_dir or os.path.join(run_dir, "eval")
   os.makedirs(out_dir, exist_ok=True)
   test_seeds = held_out_seeds(cfg.visual_seeds, cfg.seed)
-  train_look = _train_look(train_cfg)
-  _check_disjoint(test_seeds, train_look)
+  looks = train_cfg.agent_looks()
+  for look in set(looks):
+    _check_disjoint(test_seeds, look)
   per_env_seeds = np.repeat(test_seeds, cfg.dynamics_seeds)
   n = per_env_seeds.size
+  several = len(loop.parse_visual_seeds(train_cfg.visual_seeds)) > 1
 
-  share_none = "none" in conditions and _is_default_look(train_look)
+  shares = {a: "none" in conditions and _is_default_look(looks[a]) for a in chosen}
   t_start = time.perf_counter()
-  env = dmcr_jax.make(train_cfg.task, num_envs=n, visual_seeds=train_look,
+  env = dmcr_jax.make(train_cfg.task, num_envs=n, visual_seeds=per_env_seeds,
                       vary=train_cfg.vary, frame_skip=train_cfg.action_repeat,
                       frame_stack=train_cfg.frame_stack, image_size=train_cfg.image_size,
                       seed=cfg.seed, **render_options(cfg))
   bar = None
   if progress:
     from tqdm.auto import tqdm
-    bar = tqdm(total=len(chosen) * (len(conditions) + (not share_none)), desc="evaluate",
-               unit="condition")
+    bar = tqdm(total=sum(len(conditions) + (not shares[a]) for a in chosen),
+               desc="evaluate", unit="condition")
   results = []
   with env:
     for a in chosen:
@@ -232,8 +251,11 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
       policy = lambda obs, agent=agent: greedy_action(agent, obs)
       seed, aug = specs[a]
       algo = train_cfg.sac.algo
+      share_none = shares[a]
       row = dict(agent=a, seed=seed, aug=aug, algo=algo,
-                 method=paper_results.method_name(algo, aug), conditions={})
+                 method=paper_results.method_name(algo, aug),
+                 train_look=loop.look_label(looks[a]), looks=loop.num_looks(looks[a]),
+                 conditions={})
       done = {}
       if share_none:
         # The training look is the default one, which "none" shows too, and the
@@ -244,7 +266,7 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
         done["none"] = run_episodes(env, policy, cfg.seed), time.perf_counter() - t0
         train_returns, train_wall = done["none"][0][:cfg.train_episodes], done["none"][1]
       else:
-        env.set_visuals(train_look, vary=train_cfg.vary)
+        env.set_visuals(train_look_seeds(looks[a], n, cfg.seed), vary=train_cfg.vary)
         t0 = time.perf_counter()
         train_returns = run_episodes(env, policy, cfg.seed)[:cfg.train_episodes]
         train_wall = time.perf_counter() - t0
@@ -280,6 +302,8 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
   with open(os.path.join(out_dir, "eval.md"), "w") as f:
     f.write(markdown(summary))
   plot(summary, os.path.join(out_dir, "eval.png"))
+  if several:
+    write_few_shot(summary, out_dir)
   return summary
 
 
@@ -368,11 +392,12 @@ def markdown(summary: dict) -> str:
     cells += [f"{row[c]:.1f}" if c in row else "–" for c in conditions]
     return "| " + " | ".join(cells + [pct(g["paper"]["e_g"].get(last))]) + " |"
 
+  ranges = len({r.get("train_look") for r in summary["agents"]}) > 1
   for r in summary["agents"]:
     means = {c: r["conditions"][c]["mean"] for c in conditions}
-    lines.append(line(f"seed {r['seed']}, {_label(r)}", r["train"]["mean"], means,
-                      r["conditions"][last]["e_g"]))
-  if len(groups) == 1 and len(summary["agents"]) > 1:
+    label = f"seed {r['seed']}, {_label(r)}" + (f", {r['train_look']}" if ranges else "")
+    lines.append(line(label, r["train"]["mean"], means, r["conditions"][last]["e_g"]))
+  if len(groups) == 1 and len(summary["agents"]) > 1 and not ranges:
     m = summary["mean"]
     lines.append(line("**mean**", m["train"], m["conditions"], m["e_g"][last]))
   elif 1 < len(groups) < len(summary["agents"]):
@@ -448,6 +473,122 @@ def plot(summary: dict, png_path: str) -> None:
   fig.tight_layout()
   fig.savefig(png_path, dpi=100, bbox_inches="tight")
   plt.close(fig)
+
+
+def few_shot_rows(summary: dict) -> list[dict]:
+  """The generalisation curve of a few-shot run: one row per (augmentation, training
+  looks), the means over that group's agents (seeds).
+
+  Returns:
+    Rows sorted by augmentation then number of looks, each with "aug", "method",
+    "looks" (number of training looks), "train_look", "seeds", "train" (mean
+    return at the training looks), "conditions" {condition: mean test return},
+    "e_g" {condition: E_G of those means} and "all_std" (std of "all" over the
+    seeds; 0 for one seed).
+  """
+  groups: dict[tuple, list[dict]] = {}
+  for r in summary["agents"]:
+    groups.setdefault((r["aug"], r["looks"], r["train_look"]), []).append(r)
+  rows = []
+  for (aug, looks, label), agents in sorted(groups.items(), key=lambda kv: kv[0][:2]):
+    mean = _mean_row(agents, summary["conditions"])
+    row = dict(aug=aug, method=agents[0].get("method"), looks=looks, train_look=label,
+               seeds=[r["seed"] for r in agents], train=mean["train"],
+               conditions=mean["conditions"], e_g=mean["e_g"])
+    if "all" in summary["conditions"]:
+      row["all_std"] = float(np.std([r["conditions"]["all"]["mean"] for r in agents]))
+    rows.append(row)
+  return rows
+
+
+def zero_shot_references(rows: list[dict]) -> dict[str, float]:
+  """{method or augmentation: test return under "all"} of the zero-shot rows
+  (trained on dm_control's look alone: levels:1 or seed 0)."""
+  return {(r["method"] or r["aug"]): r["conditions"]["all"] for r in rows
+          if r["train_look"] in ("levels:1", "seed 0") and "all" in r["conditions"]}
+
+
+def few_shot_markdown(summary: dict, rows: list[dict]) -> str:
+  """The curve as a Markdown table: per augmentation and number of training looks,
+  the train return, each condition's test return and E_G (all)."""
+  conditions = summary["conditions"]
+  cfg = summary["config"]
+  last = "all" if "all" in conditions else conditions[-1]
+  head = ["augmentation", "training looks", "seeds", "train"] + conditions + [f"E_G ({last})"]
+  lines = [f"Few-shot generalisation of `{summary['run_dir']}` ({summary['task']}, "
+           f"checkpoint step {summary['checkpoint_step']:,}): one agent per training-look "
+           f"range and seed, all tested on the same {cfg['visual_seeds']} held-out visual "
+           f"seeds × {cfg['dynamics_seeds']} initial states; train = mean return over "
+           f"{cfg['train_episodes']} episodes at looks from the agent's own range; "
+           f"{_render_words(cfg)}; means over seeds; E_G = (train − test) / train.", "",
+           "| " + " | ".join(head) + " |", "|---|---|---:|" + "---:|" * (len(head) - 3)]
+  for r in rows:
+    e_g = r["e_g"][last]
+    cells = [r["method"] or r["aug"], f"{r['looks']:,} ({r['train_look']})",
+             str(len(r["seeds"])), f"{r['train']:.1f}"]
+    cells += [f"{r['conditions'][c]:.1f}" for c in conditions]
+    cells.append(f"{100 * e_g:.1f} %" if np.isfinite(e_g) else "–")
+    lines.append("| " + " | ".join(cells) + " |")
+  return "\n".join(lines) + "\n"
+
+
+def plot_few_shot(summary: dict, rows: list[dict], png_path: str) -> None:
+  """Test return per condition ("all" bold) and E_G against the number of training
+  looks (log x), one line style per augmentation; dashed: the run's zero-shot
+  "all" returns (`zero_shot_references`)."""
+  import matplotlib
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt
+  conditions = summary["conditions"]
+  last = "all" if "all" in conditions else conditions[-1]
+  augs = list(dict.fromkeys(r["aug"] for r in rows))
+  styles = ["-", "--", ":", "-."]
+  colours = {c: ("black" if c == "all" else f"C{i}") for i, c in enumerate(conditions)}
+  fig, (ax, ax_e) = plt.subplots(1, 2, figsize=(10, 4), gridspec_kw=dict(width_ratios=(3, 2)))
+  for j, aug in enumerate(augs):
+    mine = [r for r in rows if r["aug"] == aug]
+    x = [r["looks"] for r in mine]
+    name = mine[0]["method"] or aug
+    for c in conditions:
+      ax.plot(x, [r["conditions"][c] for r in mine], styles[j % 4], color=colours[c],
+              marker="o", ms=3, lw=2.5 if c == last else 1,
+              label=f"{c}" if len(augs) == 1 else f"{c}, {name}")
+    ax_e.plot(x, [r["e_g"][last] for r in mine], styles[j % 4], color="black", marker="o",
+              ms=3, label=name)
+  for k, (name, value) in enumerate(zero_shot_references(rows).items()):
+    ax.axhline(value, color=f"C{k + len(conditions)}", ls=(0, (5, 3)), lw=1.2,
+               label=f"zero-shot {name} ({last})")
+  ticks = sorted({r["looks"] for r in rows})
+  for a in (ax, ax_e):
+    a.set_xscale("log")
+    a.set_xticks(ticks, [f"{t:,}" if t < 2**30 else "2^30 (all)" for t in ticks],
+                 fontsize=7, rotation=30)
+    a.minorticks_off()
+    a.set_xlabel("training looks (visual seeds)")
+  ax.set_ylabel("test return (held-out looks)")
+  ax_e.set_ylabel(f"E_G ({last})")
+  ax.set_title(f"{summary['task']}: test return against training looks", fontsize=9)
+  ax_e.set_title("generalisation error (train − test) / train", fontsize=9)
+  ax.legend(fontsize=6, loc="best", ncol=2)
+  ax_e.legend(fontsize=7)
+  fig.tight_layout()
+  fig.savefig(png_path, dpi=100)
+  plt.close(fig)
+
+
+def write_few_shot(summary: dict, out_dir: str) -> list[dict]:
+  """Writes the generalisation curve of a few-shot run's evaluation: few_shot.json
+  (rows and zero-shot references), few_shot.md and few_shot.png; returns the rows."""
+  rows = few_shot_rows(summary)
+  data = dict(task=summary["task"], run_dir=summary["run_dir"],
+              checkpoint_step=summary["checkpoint_step"], conditions=summary["conditions"],
+              rows=rows, zero_shot=zero_shot_references(rows))
+  with open(os.path.join(out_dir, "few_shot.json"), "w") as f:
+    json.dump(loop.json_safe(data), f, indent=1, allow_nan=False)
+  with open(os.path.join(out_dir, "few_shot.md"), "w") as f:
+    f.write(few_shot_markdown(summary, rows))
+  plot_few_shot(summary, rows, os.path.join(out_dir, "few_shot.png"))
+  return rows
 
 
 def checkpoint_steps(run_dir: str) -> list[int]:
@@ -537,6 +678,9 @@ def main(argv=None) -> None:
       summary = evaluate(a.run_dir, cfg, out_dir=out, agents=agents,
                          progress=not a.no_progress)
       print(markdown(summary))
+      if len({r["train_look"] for r in summary["agents"]}) > 1:
+        print(few_shot_markdown(summary, few_shot_rows(summary)))
+        print(f"wrote {out}/few_shot.png, few_shot.md and few_shot.json")
     from train import analysis
     first = (agents or [0])[0]
     extra = dict(seed=cfg.seed, quality=cfg.quality, workers=cfg.workers)

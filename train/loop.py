@@ -29,9 +29,12 @@ policy the accelerator has; updates sample the transitions stored so far (those
 of the groups still stepping are not yet in the buffers). G = 1 is the plain
 vector step.
 
-Agents: one per (augmentation, seed) pair: `seeds` × `sac.aug_names` (e.g.
-``aug="drq,cj+drq"`` with 3 seeds trains 6 agents; an agent's network init
-depends only on its seed, so augmentations are compared from the same start).
+Agents: one per (training looks, augmentation, seed): the look groups of
+`visual_seeds` × `sac.aug_names` × `seeds` (e.g. ``aug="drq,cj+drq"`` with 3
+seeds trains 6 agents; ``visual_seeds="levels:1,10,100"`` makes that 18, each
+agent's envs drawing their looks from its own range). An agent's network init
+depends only on its seed, so augmentations and ranges are compared from the
+same start.
 
 Steps: `steps` counts training steps per agent as the paper defines them (its
 Sec. 4: an action taken and its transition stored; one such step is
@@ -67,7 +70,6 @@ import os
 import signal
 import sys
 import time
-from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -75,7 +77,7 @@ import numpy as np
 
 from dmcr_jax.checks import positive_int
 from dmcr_jax.env import RENDERERS, check_renderer_name  # noqa: F401 (RENDERERS: for the CLIs)
-from dmcr_jax.visuals.levels import SeedRange
+from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, SeedRange
 from train import replay, sac
 from train import step as train_step
 
@@ -104,8 +106,9 @@ class TrainConfig:
       augmentation in `sac.aug`.
     num_envs: envs per agent.
     action_repeat: None = the paper's Table 4 value for the task.
-    visual_seeds: an int (fixed look; 0 = dm_control's) or "levels:<n>"
-      (few-shot: every episode draws a look from seeds [0, n)).
+    visual_seeds: an int (fixed look; 0 = dm_control's) or "levels:<n>[,<n>…]"
+      (few-shot: every episode draws a look from seeds [0, n); several counts
+      train one agent per range, `parse_visual_seeds`).
     vary: factors the visual seeds change.
     warmup_steps: random-action training steps (transitions) per agent before
       learning (Table 6: 1,000).
@@ -170,28 +173,88 @@ class TrainConfig:
     return None
 
   def agents(self) -> list[tuple[int, str]]:
-    """(seed, augmentation) of each agent, in the order of the agent axis."""
-    return [(seed, aug) for aug in self.sac.aug_names for seed in self.seeds]
+    """(seed, augmentation) of each agent, in the order of the agent axis (look
+    groups outermost, then augmentations, then seeds; `agent_looks`)."""
+    groups = len(parse_visual_seeds(self.visual_seeds))
+    return [(seed, aug) for _ in range(groups) for aug in self.sac.aug_names
+            for seed in self.seeds]
+
+  def agent_looks(self) -> list[int | SeedRange]:
+    """The training looks of each agent (a fixed seed or a `SeedRange`), in the
+    order of the agent axis."""
+    per_group = len(self.sac.aug_names) * len(self.seeds)
+    return [look for look in parse_visual_seeds(self.visual_seeds) for _ in range(per_group)]
 
 
-def parse_visual_seeds(value) -> Any:
-  """`TrainConfig.visual_seeds` → what `dmcr_jax.make` takes (checked: a seed in
-  [0, 2**31 − 1], or levels:<n> with n ≥ 1)."""
+ALL_LEVELS = "all"
+"""The count `levels:` takes for the whole training range (`TRAIN_SEEDS`)."""
+VISUAL_SEEDS_FORM = (
+    "an int in [0, 2**31 - 1] (one fixed look; 0 = dm_control's) or "
+    f"'levels:<n>[,<n>...]': distinct ints 1 <= n <= {len(TRAIN_SEEDS)} (2**30) or "
+    f"'{ALL_LEVELS}', one agent per range of the first n seeds (levels:1 = seed 0 only, "
+    "dm_control's look), e.g. levels:1,10,100,1000,10000,all")
+"""The valid forms of `TrainConfig.visual_seeds` (named by its errors)."""
+
+
+def parse_visual_seeds(value) -> tuple[int | SeedRange, ...]:
+  """`TrainConfig.visual_seeds` → the training looks of each look group, each what
+  `dmcr_jax.make` takes: (seed,) for a fixed look, or one `levels(n)` per count of
+  "levels:<n>[,<n>…]" ("all" = the whole `TRAIN_SEEDS`).
+
+  Raises:
+    ValueError: naming `VISUAL_SEEDS_FORM`, for a seed out of range, a count < 1
+      or past the training range (which would reach `TEST_SEEDS`), a duplicate
+      count, a non-integer, or a fixed seed mixed with levels.
+  """
   from dmcr_jax.visuals.levels import levels
   from dmcr_jax.visuals.params import check_seeds
-  want = "an int in [0, 2**31 − 1] (a fixed look) or 'levels:<n>' with n ≥ 1 (few-shot)"
+
+  def bad(why: str):
+    return ValueError(f"visual_seeds {value!r}: {why}; valid: {VISUAL_SEEDS_FORM}")
+
+  if isinstance(value, str) and "levels" in value:
+    if not value.startswith("levels:"):
+      raise bad("a fixed seed cannot be mixed with levels (one form or the other)")
+    if value.count("levels") > 1:
+      raise bad("give levels: once, with comma-separated counts")
+    counts = []
+    for item in value[len("levels:"):].split(","):
+      item = item.strip()
+      if item == ALL_LEVELS:
+        counts.append(len(TRAIN_SEEDS))
+        continue
+      if not item.lstrip("+-").isdigit():
+        raise bad(f"{item!r} is not an integer count of looks")
+      n = int(item)
+      if n < 1:
+        raise bad(f"levels:{n} holds no seed (the zero-shot setting is levels:1, seed 0)")
+      if n > len(TRAIN_SEEDS):
+        raise bad(f"levels:{n} reaches past the training range {TRAIN_SEEDS} into the "
+                  f"held-out test range {TEST_SEEDS}")
+      counts.append(n)
+    if len(set(counts)) != len(counts):
+      raise bad("a count appears twice (one agent per range)")
+    return tuple(levels(n) for n in counts)
   try:
-    if isinstance(value, str) and value.startswith("levels:"):
-      n = int(value.split(":", 1)[1])
-      positive_int("levels", n)
-      return levels(n)
-    if isinstance(value, bool) or isinstance(value, float):
+    if isinstance(value, (bool, float)):
       raise ValueError
     seed = int(value)
     check_seeds(seed)
-    return seed
   except (TypeError, ValueError):
-    raise ValueError(f"visual_seeds must be {want}, got {value!r}") from None
+    raise bad("not a seed in [0, 2**31 - 1]") from None
+  return (seed,)
+
+
+def look_label(look: int | SeedRange) -> str:
+  """How logs, tables and plots name a training look: "seed 0" or "levels:10"."""
+  if isinstance(look, SeedRange):
+    return f"levels:{ALL_LEVELS}" if look == TRAIN_SEEDS else f"levels:{len(look)}"
+  return f"seed {look}"
+
+
+def num_looks(look: int | SeedRange) -> int:
+  """How many looks a training look holds (1 for a fixed seed)."""
+  return len(look) if isinstance(look, SeedRange) else 1
 
 
 def check_renderer(renderer: str, quality: str, workers: int | None) -> None:
@@ -233,10 +296,6 @@ def check_config(cfg: TrainConfig) -> None:
   check_renderer(cfg.renderer, cfg.quality, cfg.workers)
   if cfg.renderer == "jax":
     positive_int("chunk_steps", cfg.chunk_steps)
-    seeds = parse_visual_seeds(cfg.visual_seeds)
-    if isinstance(seeds, SeedRange):
-      from dmcr_jax.jax_env import check_range
-      check_range(seeds)
   if cfg.physics not in PHYSICS:
     raise ValueError(f"physics must be one of {', '.join(PHYSICS)}, got {cfg.physics!r}")
   groups = positive_int("env_groups", cfg.env_groups)
@@ -479,6 +538,11 @@ class RunLog:
                    "agent_steps_per_s", "critic_loss", "actor_loss", "alpha", "q"]
     if cfg.sac.algo != "sac_aug":
       self.fields.append("aux_loss")
+    # Several training-look ranges: the agent's range after its augmentation.
+    self.looks = ([look_label(x) for x in cfg.agent_looks()]
+                  if len(parse_visual_seeds(cfg.visual_seeds)) > 1 else None)
+    if self.looks is not None:
+      self.fields.insert(4, "looks")
     new_log = not (resume and os.path.exists(self.path))
     self._file = open(self.path, "w" if new_log else "a", newline="")
     self._writer = csv.DictWriter(self._file, fieldnames=self.fields)
@@ -522,7 +586,9 @@ class RunLog:
                episode_return=episode_return, wall_s=round(wall, 2),
                agent_steps_per_s=round((step - self.start) * len(self.specs)
                                        / max(wall, 1e-9), 1))
-    for f in self.fields[7:]:
+    if self.looks is not None:
+      row["looks"] = self.looks[agent]
+    for f in self.fields[7 + (self.looks is not None):]:
       if f in metrics and np.isfinite(np.mean(metrics[f][agent])):
         row[f] = float(np.mean(metrics[f][agent]))
     self._writer.writerow(row)
@@ -580,7 +646,9 @@ def finish(cfg: TrainConfig, step: int, log: RunLog) -> dict:
                  **({"host_seconds": log.host_s, "env_seconds": log.env_s}
                     if log.host_s else {}),
                  final_return=plot_learning_curve(log.path, os.path.join(
-                     cfg.out_dir, "learning_curve.png"), specs))
+                     cfg.out_dir, "learning_curve.png"), specs, log.looks))
+  if log.looks is not None:
+    summary["looks"] = log.looks
   with open(os.path.join(cfg.out_dir, "summary.json"), "w") as f:
     json.dump(json_safe(summary), f, indent=1, allow_nan=False)
   return summary
@@ -605,13 +673,18 @@ def step_spec(cfg: TrainConfig, env) -> train_step.StepSpec:
 
 def make_env(cfg: TrainConfig, num_envs: int | None = None, **options):
   """The run's `dmcr_jax.make` env: `num_envs` envs per agent (None: N), K·that
-  in all (`options` go to `make`)."""
+  in all (`options` go to `make`); with several training-look ranges, agent k's
+  envs draw from its own range."""
   import dmcr_jax
   k = len(cfg.agents())
   if cfg.renderer == "pool":
     options = dict(quality=cfg.quality, workers=cfg.workers, **options)
-  return dmcr_jax.make(cfg.task, num_envs=k * (num_envs or cfg.num_envs),
-                       visual_seeds=parse_visual_seeds(cfg.visual_seeds), vary=cfg.vary,
+  n = num_envs or cfg.num_envs
+  groups = parse_visual_seeds(cfg.visual_seeds)
+  looks = (groups[0] if len(groups) == 1
+           else [look for look in cfg.agent_looks() for _ in range(n)])
+  return dmcr_jax.make(cfg.task, num_envs=k * n,
+                       visual_seeds=looks, vary=cfg.vary,
                        frame_skip=cfg.action_repeat, frame_stack=cfg.frame_stack,
                        image_size=cfg.image_size, seed=int(cfg.seeds[0]),
                        renderer=cfg.renderer, **options)
@@ -735,13 +808,14 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
   return finish(cfg, stored, log)
 
 
-def agent_label(seed: int, aug: str, augs) -> str:
+def agent_label(seed: int, aug: str, augs, looks: str | None = None) -> str:
   """How logs and plots name an agent: "seed 0", or "seed 0, cj+drq" when several
-  augmentations are trained."""
-  return f"seed {seed}" if len(augs) == 1 else f"seed {seed}, {aug}"
+  augmentations are trained (then ", levels:10", its training looks, when given)."""
+  label = f"seed {seed}" if len(augs) == 1 else f"seed {seed}, {aug}"
+  return label if looks is None else f"{label}, {looks}"
 
 
-def plot_learning_curve(log_path: str, png_path: str, specs) -> dict:
+def plot_learning_curve(log_path: str, png_path: str, specs, looks=None) -> dict:
   """Episode return against training step per agent (PNG).
 
   Episodes that end at the same step (the agent's N envs) are averaged into one
@@ -751,6 +825,8 @@ def plot_learning_curve(log_path: str, png_path: str, specs) -> dict:
     log_path: the run's log.csv.
     png_path: where the plot goes.
     specs: (seed, augmentation) per agent (`TrainConfig.agents`).
+    looks: each agent's training looks (`look_label`) when the run has several
+      ranges, else None.
 
   Returns:
     {agent label: mean return of the agent's episodes that ended last}.
@@ -764,6 +840,7 @@ def plot_learning_curve(log_path: str, png_path: str, specs) -> dict:
   fig, ax = plt.subplots(figsize=(6, 3.5))
   last = {}
   for a, (seed, aug) in enumerate(specs):
+    look = None if looks is None else looks[a]
     by_step: dict[int, list[float]] = {}
     for r in rows:
       if int(r["agent"]) == a:
@@ -771,7 +848,7 @@ def plot_learning_curve(log_path: str, png_path: str, specs) -> dict:
     if by_step:
       steps = sorted(by_step)
       means = [float(np.mean(by_step[t])) for t in steps]
-      label = agent_label(seed, aug, augs)
+      label = agent_label(seed, aug, augs, look)
       # Markers: a run with one finished episode per agent still shows its point.
       ax.plot(steps, means, marker="o", ms=4, label=label)
       last[label] = means[-1]

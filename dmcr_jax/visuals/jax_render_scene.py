@@ -472,6 +472,118 @@ def device_looks(scene: Scene, rm: rmod.RenderModel, looks: rmod.Looks) -> Devic
 
 
 @struct.dataclass
+class LookMaker:
+  """What turns visual seeds into `DeviceLook`s on the device (build with `look_maker`).
+
+  `maker(seeds)` is `device_looks(scene, rm, prepare(rm, rm.sample(seeds, vary)))`
+  computed in float32 inside `jit` (`params.sample_masked`, then `prepare`'s
+  selections, Euler offsets, normalisations and frame offsets with `jax.numpy`):
+  a look is a function of its seed alone, costs no host work and no table, so a
+  range of any size can be drawn from on the device. Integer fields equal the
+  host's; float fields agree with the host's float64 path to float32 rounding.
+
+  Attributes:
+    mask: bool (7,) the factors the seeds change (`params.factor_mask`).
+    consts: the render model's defaults and frames as float32 / int32 arrays.
+    domain, num_floors, num_backgrounds: static; the domain and its bank sizes.
+    light_moves: static; whether the domain's look moves a light.
+  """
+  mask: jax.Array
+  consts: dict
+  domain: str = struct.field(pytree_node=False, default="")
+  num_floors: int = struct.field(pytree_node=False, default=1)
+  num_backgrounds: int = struct.field(pytree_node=False, default=1)
+  light_moves: bool = struct.field(pytree_node=False, default=False)
+
+  def __call__(self, seeds: jax.Array) -> DeviceLook:
+    """The `DeviceLook`s of int32 (N,) visual seeds (jittable; leading axis N)."""
+    from dmcr_jax.visuals.params import FACTOR_INDEX, sample_masked
+    p = sample_masked(self.domain, jnp.asarray(seeds, jnp.int32), self.mask,
+                      self.num_floors, self.num_backgrounds)
+    c, n = self.consts, p.seed.shape[0]
+    on = lambda f: p.varied[:, FACTOR_INDEX[f]]
+    sel = lambda f, x, d: jnp.where(on(f).reshape((n,) + (1,) * (x.ndim - 1)), x, d)
+    colour = {1: sel("body", p.body_rgba, c["body_rgba"]),
+              2: sel("body", p.effector_rgba, c["effector_rgba"]),
+              3: sel("target", p.target_rgba, c["target_rgba"])}
+    mat_rgba = jnp.broadcast_to(c["mat_rgba"], (n,) + c["mat_rgba"].shape)
+    for group, rgba in colour.items():
+      mat_rgba = jnp.where((c["slot_group"] == group)[None, :, None], rgba[:, None], mat_rgba)
+    floor = jnp.where(on("floor") & (p.floor_id >= 0), p.floor_id + 1, 0)
+    sky = jnp.where(on("background") & (p.background_id >= 0), p.background_id + 1, 0)
+    refl = jnp.where(on("reflectance"), p.floor_reflectance, c["floor_reflectance"][floor])
+    head = jnp.stack([p.headlight_ambient, p.headlight_diffuse, p.headlight_specular], 1)
+
+    # Camera: Euler offsets (intrinsic x-y-z) on top of the default orientation.
+    q = jnp.broadcast_to(c["cam_quat"], (n, 4))
+    half = jnp.deg2rad(p.cam_rot) / 2
+    for axis in range(3):
+      turn = jnp.zeros((n, 4)).at[:, 0].set(jnp.cos(half[:, axis]))
+      q = rmod._qmul(q, turn.at[:, 1 + axis].set(jnp.sin(half[:, axis])), jnp)
+    q = q / jnp.sqrt(jnp.sum(q * q, axis=-1, keepdims=True))
+    xpos, xquat, com = c["cam_frame"]
+    xquat = jnp.broadcast_to(xquat, (n, 4))
+    cxpos = xpos + rmod._rotate(xquat, p.cam_pos, jnp)
+    cmat = rmod._qmat(rmod._qmul(xquat, q, jnp), jnp)
+    cam = lambda x, d: sel("camera", x, d)
+
+    # Light: position and (normalised) direction, and their tracking offsets.
+    norm = jnp.sqrt(jnp.sum(p.light_dir * p.light_dir, axis=-1, keepdims=True))
+    ldir = jnp.where(norm > 1e-9, p.light_dir / jnp.where(norm > 1e-9, norm, 1.0),
+                     c["light_dir"])
+    lxpos_b, lquat, lcom = c["light_frame"]
+    lquat = jnp.broadcast_to(lquat, (n, 4))
+    lxpos = lxpos_b + rmod._rotate(lquat, p.light_pos, jnp)
+    lxdir = rmod._rotate(lquat, ldir, jnp)
+    lm = (on("light") & self.light_moves)[:, None]
+    light = lambda x, d: jnp.where(lm, x, d)
+    return DeviceLook(
+        mat_rgba=mat_rgba, floor=floor.astype(jnp.int32), floor_reflectance=refl,
+        sky=sky.astype(jnp.int32), headlight=sel("light", head, c["headlight"]),
+        cam_pos=cam(p.cam_pos, c["cam_pos"]), cam_quat=cam(q, c["cam_quat"]),
+        cam_pos0=cam(cxpos - xpos, c["cam_pos0"]),
+        cam_poscom0=cam(cxpos - com, c["cam_poscom0"]), cam_mat0=cam(cmat, c["cam_mat0"]),
+        light_pos=light(p.light_pos, c["light_pos"]), light_dir=light(ldir, c["light_dir"]),
+        light_pos0=light(lxpos - lxpos_b, c["light_pos0"]),
+        light_poscom0=light(lxpos - lcom, c["light_poscom0"]),
+        light_dir0=light(lxdir, c["light_dir0"]))
+
+
+def look_maker(scene: Scene, rm: rmod.RenderModel, vary) -> LookMaker:
+  """The `LookMaker` of a domain's scene and render model for the factors `vary`.
+
+  Args:
+    scene: the domain's scene.
+    rm: its render model.
+    vary: the factors the visual seeds change (as for `params.sample`).
+  """
+  from dmcr_jax.visuals import ranges as R
+  from dmcr_jax.visuals.params import factor_mask
+  d = rm.dflt
+  mats = material_slots(scene, rm)
+  group = np.zeros(len(mats), np.int32)       # later groups win, as in `device_looks`
+  for code, members in ((1, rm.body_mats), (2, rm.effector_mats), (3, rm.target_mats)):
+    group[np.isin(mats, members)] = code
+  floors = np.concatenate([[d["floor_matid"]], rm.floor_mat0 + np.arange(rm.bank.num_floors)])
+  f32 = lambda x: jnp.asarray(np.asarray(x, np.float32))
+  consts = {k: f32(d[k]) for k in ("headlight", "cam_pos", "cam_quat", "cam_pos0",
+                                   "cam_poscom0", "cam_mat0", "light_pos", "light_dir",
+                                   "light_pos0", "light_poscom0", "light_dir0")}
+  consts.update(
+      mat_rgba=f32(d["mat_rgba"][mats]), slot_group=jnp.asarray(group),
+      body_rgba=f32(d["mat_rgba"][rm.body_mats[0]]),
+      effector_rgba=f32(d["mat_rgba"][rm.effector_mats[0]]),
+      target_rgba=f32(d["mat_rgba"][rm.target_mats[0]]),
+      floor_reflectance=f32(d["mat_reflectance"][floors]),
+      cam_frame=tuple(f32(x) for x in rm.cam_frame),
+      light_frame=tuple(f32(x) for x in rm.light_frame))
+  return LookMaker(mask=jnp.asarray(factor_mask(rm.domain, vary)), consts=consts,
+                   domain=rm.domain, num_floors=int(rm.bank.num_floors),
+                   num_backgrounds=int(rm.bank.num_backgrounds),
+                   light_moves=R.DOMAIN_RANGES[rm.domain].light_pos is not None)
+
+
+@struct.dataclass
 class BodyPoses:
   """What the renderer reads from a physics state: body frames and subtree centres.
 

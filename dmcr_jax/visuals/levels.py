@@ -11,7 +11,8 @@ The space of visual seeds [0, 2**31) is split in two halves that never overlap:
 
 A `SeedRange` is a half-open interval [start, stop) of seeds; `sample(key, shape)`
 draws from it uniformly inside `jit`, and `first(n)` lists its first n seeds (a
-fixed, documented evaluation set).
+fixed, documented evaluation set). `EnvRanges` gives each env of a batch its own
+range (agents with different training ranges in one run).
 """
 
 from __future__ import annotations
@@ -76,6 +77,44 @@ class SeedRange:
 
   def __repr__(self):
     return f"SeedRange({self.start}, {self.stop})"
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvRanges:
+  """One `SeedRange` per env: env i draws every episode's seed from `ranges[i]`
+  (several few-shot ranges in one batch, e.g. one per agent of a training run).
+
+  Attributes:
+    ranges: N `SeedRange`s (a tuple: the object is hashable, static under `jit`).
+  """
+  ranges: tuple[SeedRange, ...]
+
+  def __post_init__(self):
+    ranges = tuple(self.ranges)
+    if not ranges or not all(isinstance(r, SeedRange) for r in ranges):
+      raise TypeError(f"EnvRanges needs one or more SeedRanges, got {self.ranges!r}")
+    object.__setattr__(self, "ranges", ranges)
+
+  def __len__(self) -> int:
+    return len(self.ranges)
+
+  def sample(self, key: jax.Array, index: jax.Array) -> jax.Array:
+    """A uniform int32 seed from env `index`'s range (jittable; `index` may be
+    traced). Draws what `ranges[index].sample(key)` draws."""
+    start = jnp.asarray([r.start for r in self.ranges], jnp.int32)[index]
+    stop = jnp.asarray([r.stop for r in self.ranges], jnp.int32)[index]
+    return jax.random.randint(key, (), start, stop, dtype=jnp.int32)
+
+  def contains_all(self, seeds) -> bool:
+    """Whether every row of an int array (…, N) lies in its env's range."""
+    seeds = np.asarray(seeds)
+    start = np.asarray([r.start for r in self.ranges])
+    stop = np.asarray([r.stop for r in self.ranges])
+    return bool(np.all((seeds >= start) & (seeds < stop)))
+
+  def __repr__(self):
+    distinct = list(dict.fromkeys(self.ranges))
+    return f"EnvRanges({len(self)} envs: {', '.join(map(repr, distinct))})"
 
 
 TRAIN_SEEDS = SeedRange(0, _SPLIT)

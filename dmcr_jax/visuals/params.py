@@ -331,11 +331,30 @@ def sample(domain: str, seeds: Any, vary: str | Iterable[str] | None = "all", *,
     TypeError: non-integer seeds.
   """
   domain = check_domain(domain)
-  factors = active_factors(domain, vary)
   for name, n in (("num_floors", num_floors), ("num_backgrounds", num_backgrounds)):
     if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 1:
       raise ValueError(f"{name} must be a positive int, got {n!r}.")
-  mask = np.array([f in factors for f in FACTORS])
-  fields = _sample_jit(check_seeds(seeds), mask, _domain_consts(domain),
-                       np.uint32(num_floors), np.uint32(num_backgrounds))
+  return sample_masked(domain, check_seeds(seeds), factor_mask(domain, vary),
+                       num_floors, num_backgrounds)
+
+
+def factor_mask(domain: str, vary: str | Iterable[str] | None) -> np.ndarray:
+  """Bool (7,) in `FACTORS` order: the factors `vary` switches on for `domain`."""
+  factors = active_factors(domain, vary)
+  return np.array([f in factors for f in FACTORS])
+
+
+def sample_masked(domain: str, seeds: jax.Array, mask: jax.Array, num_floors: int,
+                  num_backgrounds: int) -> VisualParams:
+  """`sample` with the factors as a bool (7,) mask (`factor_mask`), which may be
+  traced: one compilation serves every `vary`. No checks (`sample` makes them).
+
+  Args:
+    domain: a checked DMCR domain.
+    seeds: int32 (N,) visual seeds (may be traced).
+    mask: bool (7,) factors on, in `FACTORS` order.
+    num_floors, num_backgrounds: the bank sizes the texture ids index.
+  """
+  fields = _sample_jit(seeds, mask, _domain_consts(domain), np.uint32(num_floors),
+                       np.uint32(num_backgrounds))
   return VisualParams(domain=domain, **fields)

@@ -236,28 +236,30 @@ def build_render_model(domain: str, bank: TextureBank | None = None) -> RenderMo
 # ---------------------------------------------------------------------------
 
 
-def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-  """Quaternion product (w, x, y, z) over leading axes (plain + − ×, exact order)."""
+def _qmul(a: np.ndarray, b: np.ndarray, xp=np) -> np.ndarray:
+  """Quaternion product (w, x, y, z) over leading axes (plain + − ×, exact order);
+  `xp`: the array module (NumPy here, `jax.numpy` for looks made on the device)."""
   aw, ax, ay, az = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
   bw, bx, by, bz = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
-  return np.stack([aw * bw - ax * bx - ay * by - az * bz,
+  return xp.stack([aw * bw - ax * bx - ay * by - az * bz,
                    aw * bx + ax * bw + ay * bz - az * by,
                    aw * by - ax * bz + ay * bw + az * bx,
                    aw * bz + ax * by - ay * bx + az * bw], axis=-1)
 
 
-def _qmat(q: np.ndarray) -> np.ndarray:
+def _qmat(q: np.ndarray, xp=np) -> np.ndarray:
   """Unit quaternion → row-major 3×3 rotation matrix (flattened to 9)."""
   w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-  return np.stack([
+  return xp.stack([
       w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y),
       2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x),
       2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z],
       axis=-1)
 
 
-def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-  mat = _qmat(q).reshape(q.shape[:-1] + (3, 3))
+def _rotate(q: np.ndarray, v: np.ndarray, xp=np) -> np.ndarray:
+  """`v` rotated by the unit quaternion `q` (over leading axes)."""
+  mat = _qmat(q, xp).reshape(q.shape[:-1] + (3, 3))
   return (mat[..., 0] * v[..., :1] + mat[..., 1] * v[..., 1:2] + mat[..., 2] * v[..., 2:3])
 
 
