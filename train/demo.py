@@ -37,8 +37,8 @@ from train import loop, sac
 
 DEMO_SAC = sac.SACConfig(batch_size=32, hidden_dim=256, conv_channels=8)
 """The demo's learner: SAC+AUG with DrQ as in the paper, but batch 32 (paper: 256),
-256-wide actor and critics (1,024) and 8 filters per convolution (32), so that a
-gradient update takes tens of milliseconds on a 2-core CPU instead of seconds."""
+256-wide actor and critics (1,024) and 8 filters per convolution (32): small enough
+that a few thousand gradient updates fit in the demo's minutes on a laptop CPU."""
 
 GRID_TILE = 96
 """Side of a tile of visual_seeds.png, in pixels."""
