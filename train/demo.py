@@ -119,9 +119,10 @@ def seed_grid(demo: Demo, path: str) -> np.ndarray:
   train = list(range(demo.train_looks))
   test = [int(s) for s in ev.held_out_seeds(demo.eval_looks, demo.seed)[:len(train)]]
   cols = max(len(train), len(test))
-  rows = [render_grid(demo.task, train, demo.vary, size=GRID_TILE, cols=cols),
-          render_grid(demo.task, test, "all", size=GRID_TILE, cols=cols)]
-  grid = np.concatenate([rows[0], rows[1][2:]], axis=0)  # one 2-pixel gap between rows
+  pad = 2
+  rows = [render_grid(demo.task, train, demo.vary, size=GRID_TILE, cols=cols, pad=pad),
+          render_grid(demo.task, test, "all", size=GRID_TILE, cols=cols, pad=pad)]
+  grid = np.concatenate([rows[0], rows[1][pad:]], axis=0)  # one gap between the rows
   iio.imwrite(path, grid)
   return grid
 
