@@ -221,7 +221,8 @@ def report(demo: Demo, result: dict) -> str:
       f"What it cannot show: a trained agent or a generalisation result. "
       f"{demo.steps:,} training steps of a small network (batch {demo.sac.batch_size}, "
       f"{demo.image_size} px) are a fraction of the paper's 50,000 steps at batch 256 "
-      f"and 84 px: expect returns near those of the first, random-action episodes. "
+      f"and 84 px: expect returns near those of the first, random-action episodes "
+      f"(a few times more --steps begin to learn; the README says how far). "
       f"With {demo.eval_looks * demo.eval_states} episodes per condition the E_G column "
       "is noise.",
       "",
