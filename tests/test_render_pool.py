@@ -142,3 +142,41 @@ def test_gl_default_and_osmesa_check(monkeypatch):
   monkeypatch.setattr(rp.ctypes.util, "find_library", lambda name: None)
   with pytest.raises(ValueError, match="libosmesa6"):
     RenderPool("reacher-easy", max_batch=1, gl="osmesa")
+
+
+OSMESA_SCRIPT = r"""
+import os, sys
+import numpy as np
+from dmcr_jax.visuals.render_pool import RenderPool
+
+frames = {}
+for gl in ("osmesa", "egl"):
+  with RenderPool("cartpole-balance", max_batch=2, height=24, width=24, workers=1,
+                  gl=gl) as pool:
+    looks = pool.rm.sample([0, 7], vary="all")
+    frames[gl] = pool.render(np.tile(pool.rm.model.qpos0, (2, 1)), looks)
+    maps = open(f"/proc/{pool.pids[0]}/maps").read()
+    print(gl, "libOSMesa" in maps, "libEGL" in maps)
+print("equal", bool(np.array_equal(frames["osmesa"], frames["egl"])),
+      "std", float(frames["osmesa"].std()))
+"""
+
+
+@pytest.mark.skipif(__import__("ctypes.util").util.find_library("OSMesa") is None,
+                    reason="the OSMesa library is not installed (Debian: libosmesa6)")
+def test_osmesa_renders_in_a_plain_shell():
+  # make(..., gl="osmesa") failed ("'EGLPlatform' object has no attribute 'OSMesa'")
+  # unless MUJOCO_GL=osmesa was exported: run it where neither variable is set.
+  import subprocess
+  import sys
+  env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
+  root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+  out = subprocess.run([sys.executable, "-c", OSMESA_SCRIPT], capture_output=True,
+                       text=True, timeout=180, cwd=root, env=dict(env, JAX_PLATFORMS="cpu"))
+  assert out.returncode == 0, out.stderr[-3000:]
+  lines = out.stdout.split("\n")
+  # Each worker loaded its own backend's library, not the other's.
+  assert "osmesa True False" in lines and "egl False True" in lines, out.stdout
+  # The same Mesa rasteriser behind both: the same pixels, and a real picture.
+  last = lines[-2].split()
+  assert last[:2] == ["equal", "True"] and float(last[3]) > 5, out.stdout
