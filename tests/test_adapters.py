@@ -15,6 +15,7 @@ def test_every_task_is_registered():
     assert f"dmcr/{task}-v0" in gymnasium.registry
 
 
+@pytest.mark.slow
 def test_gymnasium_env_checker_passes():
   env = gymnasium.make("dmcr/pendulum-swingup-v0", visual_seed=3, frame_skip=100,
                        image_size=32, workers=1, render_mode="rgb_array")
@@ -33,6 +34,7 @@ def test_gymnasium_env_checker_passes():
     env.close()
 
 
+@pytest.mark.slow
 def test_vector_env_spaces_and_api():
   with dmcr_jax.make("pendulum-swingup", num_envs=2, visual_seeds=dmcr_jax.TEST_SEEDS,
                      frame_skip=100, image_size=16, workers=1) as env:

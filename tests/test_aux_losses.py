@@ -191,6 +191,7 @@ def _changed(a, b):
              zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("algo", ["curl", "sac_ae"])
 def test_aux_step_moves_exactly_the_encoder_and_its_partner(algo):
   config, agent = _agent(algo)
@@ -258,6 +259,7 @@ def test_config_defaults_and_refusals():
     sac.init_agent(jax.random.key(0), (16, 16, 9), 1, sac.SACConfig(algo="curl", **TINY))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("algo", ["curl", "sac_ae"])
 def test_learns_to_read_a_pixel_cue(algo):
   # The one-step pixel-cue task of tests/test_sac.py: a bright patch on the left

@@ -63,6 +63,7 @@ def test_a_cpu_trace_falls_back_to_xla_threads(tmp_path):
   assert len(P.load_trace(str(plain))) == len(P.load_trace(path))
 
 
+@pytest.mark.slow
 def test_command_profiles_the_renderer(tmp_path, capsys, monkeypatch):
   monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", ""))  # restored after
   P.main(["render", "--task", "pendulum-swingup", "--batch", "2", "--size", "16",
@@ -76,6 +77,7 @@ def test_command_profiles_the_renderer(tmp_path, capsys, monkeypatch):
   assert "--xla_gpu_enable_command_buffer=" in os.environ["XLA_FLAGS"]
 
 
+@pytest.mark.slow
 def test_command_can_leave_only_the_summary(tmp_path, monkeypatch):
   monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", ""))  # restored after
   P.main(["render", "--task", "pendulum-swingup", "--batch", "2", "--size", "16",

@@ -32,6 +32,7 @@ def _env(xla_flags=None):
   return env
 
 
+@pytest.mark.slow
 @pytest.mark.xdist_group("walker")
 def test_1024_vmapped_walkers_step_on_cpu():
   out = subprocess.run([sys.executable, "-c", STEP_1024_WALKERS], env=_env(),

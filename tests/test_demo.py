@@ -56,6 +56,7 @@ def test_readme_starts_with_the_demo_and_the_script_is_installed():
   assert out.returncode == 0 and "usage: dmcr-demo" in out.stdout, out.stderr[-2000:]
 
 
+@pytest.mark.slow
 def test_demo_writes_its_files_and_refuses_to_overwrite_them(tmp_path, capsys):
   out = str(tmp_path / "demo")
   result = dm.run(TINY, out, progress=False)
@@ -90,7 +91,7 @@ def test_demo_writes_its_files_and_refuses_to_overwrite_them(tmp_path, capsys):
   assert "already holds a demo run" in capsys.readouterr().err
 
 
-@pytest.mark.slow
+@pytest.mark.full
 def test_the_readme_command_runs_the_whole_demo(tmp_path):
   # `dmcr-demo` at its defaults, as the README's first command runs it (minutes).
   root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

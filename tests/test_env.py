@@ -37,6 +37,7 @@ def _actions(rng, env, n=None):
   return rng.uniform(-1, 1, (n or env.num_envs, env.task.action_size)).astype(np.float32)
 
 
+@pytest.mark.slow
 def test_rewards_and_states_equal_the_model(env, one_step):
   task = env.task
   env.reset(seed=11)
@@ -222,6 +223,7 @@ def test_seed_ranges_are_disjoint_and_sampled_inside():
     SeedRange(5, 5)
 
 
+@pytest.mark.slow
 def test_few_shot_draws_a_new_look_each_episode_inside_the_range():
   with dmcr_jax.make(TASK, num_envs=4, visual_seeds=levels(50, start=100), frame_skip=SKIP,
                      image_size=16, workers=1, seed=0) as env:
@@ -245,6 +247,7 @@ def _rss_mib(pids) -> float:
   return total / 1024
 
 
+@pytest.mark.slow
 def test_memory_does_not_grow_over_10000_steps():
   with dmcr_jax.make(TASK, num_envs=2, visual_seeds=levels(1000), frame_skip=1,
                      image_size=16, workers=1, quality="fastest") as env:

@@ -76,6 +76,7 @@ def test_bad_protocols_are_rejected():
     ev.main(["/nonexistent/run"])
 
 
+@pytest.mark.slow
 def test_the_jax_renderer_runs_the_same_protocol(run_dir, tmp_path):
   # The same episodes (initial states, looks) rendered by the JAX ray caster: the
   # table has the same shape, and says which renderer drew it.
@@ -91,6 +92,7 @@ def test_the_jax_renderer_runs_the_same_protocol(run_dir, tmp_path):
     assert "rendered by the JAX ray caster" in f.read()
 
 
+@pytest.mark.slow
 def test_protocol_table_arithmetic_and_determinism(run_dir, tmp_path):
   first = ev.evaluate(run_dir, TINY, out_dir=str(tmp_path / "a"), progress=False)
   conditions = list(ev.conditions_for("cartpole-balance"))
@@ -127,6 +129,7 @@ def test_protocol_table_arithmetic_and_determinism(run_dir, tmp_path):
     assert json.load(f)["agents"][0]["agent"] == 1
 
 
+@pytest.mark.slow
 def test_invariance_is_zero_without_visual_change_and_positive_with_floors(run_dir, tmp_path):
   from train import analysis
   result = analysis.encoder_invariance(run_dir, str(tmp_path), looks=3, steps=2,
@@ -157,6 +160,7 @@ def test_conv_activations_match_a_numpy_convolution():
   np.testing.assert_allclose(maps[0], np.maximum(out, 0).mean(-1), rtol=1e-4, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_episode_video_tiles_the_looks_frame_by_frame(run_dir, tmp_path):
   import imageio.v2 as imageio
   from train import analysis

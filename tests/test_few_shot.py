@@ -23,6 +23,9 @@ from train import evaluate as ev
 from train import loop, sac
 from train.__main__ import parse
 
+# One worker runs the module, so its module-scoped training run is made once.
+pytestmark = pytest.mark.xdist_group("few_shot")
+
 TINY = sac.SACConfig(batch_size=8, conv_channels=4, feature_dim=8, hidden_dim=16)
 SMALL = dict(action_repeat=100, image_size=16, num_envs=2, quality="fastest", workers=1,
              buffer_capacity=200, warmup_steps=5, log_every=5, sac=TINY)
@@ -78,6 +81,7 @@ def _seed_history(env, steps: int, seed: int) -> np.ndarray:
   return np.stack(out)
 
 
+@pytest.mark.slow
 def test_each_agents_envs_draw_only_from_its_range_deterministically():
   cfg = loop.TrainConfig(task="pendulum-swingup", visual_seeds="levels:1,3,all", **SMALL)
   steps = 4 * (EPISODE + 1)                                  # four episodes per env
@@ -135,6 +139,7 @@ def levels_run(tmp_path_factory):
   return out, summary
 
 
+@pytest.mark.slow
 def test_training_logs_each_agents_range(levels_run):
   out, summary = levels_run
   assert summary["looks"] == ["levels:1", "levels:2"]
@@ -144,6 +149,7 @@ def test_training_logs_each_agents_range(levels_run):
   assert set(summary["final_return"]) == {"seed 0, levels:1", "seed 0, levels:2"}
 
 
+@pytest.mark.slow
 def test_evaluate_draws_the_curve_against_training_looks(levels_run, tmp_path):
   import matplotlib.image
   out, _ = levels_run

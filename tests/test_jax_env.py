@@ -72,6 +72,7 @@ def rollouts(envs, actions):
   return _run(jenv, 11, actions), _run(penv, 11, actions)
 
 
+@pytest.mark.slow
 def test_rewards_states_and_info_equal_the_pool_env(rollouts):
   jax_run, pool_run = rollouts
   np.testing.assert_array_equal(np.stack(jax_run["reward"]), np.stack(pool_run["reward"]))
@@ -83,6 +84,7 @@ def test_rewards_states_and_info_equal_the_pool_env(rollouts):
       np.testing.assert_array_equal(a[k], b[k], err_msg=k)
 
 
+@pytest.mark.slow
 def test_frames_are_close_to_the_pool_env(rollouts):
   jax_run, pool_run = rollouts
   mads = [np.abs(a.astype(int) - b.astype(int)).mean(axis=(1, 2, 3))
@@ -195,6 +197,7 @@ def _host_loop_updates(start, steps, n, warmup, utd):
   return updates
 
 
+@pytest.mark.slow
 def test_device_training_runs_chunks_logs_checkpoints_and_resumes(tmp_path):
   out = str(tmp_path / "run")
   base = dict(task=TASK, action_repeat=SKIP, image_size=SIZE, num_envs=1, seeds=(0, 1),

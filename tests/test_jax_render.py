@@ -202,6 +202,7 @@ def test_tiny_scene_known_image(bank):
   assert np.all(ids[0] == -1) and np.all(ids[-1] == 0) and cart in ids[6:10, 6:10]
 
 
+@pytest.mark.slow
 def test_jit_vmap_invariance_and_determinism(bank):
   rm, scene, looks, dl = _setup("cartpole", bank, [0, 1, 2])
   rng = np.random.default_rng(0)
@@ -250,6 +251,7 @@ def _batch(rm, n, seed=0):
   return jax.tree.map(lambda *x: jnp.stack(x), *bps)
 
 
+@pytest.mark.slow
 def test_kernel_frames_equal_xla_frames(bank):
   """The kernel's code (the same `trace_pixels`, read through `RefReader`) gives
   the XLA renderer's frames (up to float rounding: ≤ 1 level in < 1 % of the

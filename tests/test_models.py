@@ -148,7 +148,12 @@ def harness(name: str) -> Harness:
   return Harness(name)
 
 
-PARAMS = [pytest.param(n, marks=pytest.mark.xdist_group(models.split_name(n)[0]))
+SLOW_DOMAINS = ("cheetah", "finger", "hopper", "humanoid", "walker")
+"""Domains whose tests here take over ~12 s each on a 2-core CPU: marked slow, so
+`pytest -m "not slow"` keeps the other domains' dm_control checks."""
+PARAMS = [pytest.param(n, marks=[pytest.mark.xdist_group(models.split_name(n)[0])]
+                       + ([pytest.mark.slow] if models.split_name(n)[0] in SLOW_DOMAINS
+                          else []))
           for n in models.ALL_TASKS]
 
 
@@ -253,6 +258,7 @@ def test_reset_repeats_for_a_key_and_differs_across_keys(name):
   assert all(not np.array_equal(q[0], q[i]) for i in range(1, len(q)))
 
 
+@pytest.mark.slow
 @pytest.mark.xdist_group("cartpole")
 def test_composed_matches_task():
   """The jitted `Task.reset`/`Task.step` equal the tests' composed parts."""
@@ -301,6 +307,7 @@ def _dot_precisions(lowered_text: str) -> list[str]:
           else "none" for line in lines]
 
 
+@pytest.mark.slow
 def test_physics_products_traced_in_float32():
   """Every matrix product of reset and step is traced at HIGHEST precision.
 

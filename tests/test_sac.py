@@ -369,6 +369,7 @@ def test_update_pair_vmaps_over_agents():
                                rtol=1e-4)
 
 
+@pytest.mark.slow
 def test_agents_with_different_augmentations_vmap_together():
   # aug="drq,cj+drq": the agent with aug_index i trains exactly as one configured
   # with that augmentation alone, also when vmapped beside an agent using the other.
@@ -412,6 +413,7 @@ def test_bfloat16_compute_stays_close_to_float32(agent, batch):
     sac.SACConfig(compute_dtype="float16")
 
 
+@pytest.mark.slow
 def test_learns_to_read_a_pixel_cue():
   # A one-step task from pixels: a bright patch in the left or right half of a
   # 16×16×9 image says which sign of the action pays (reward = ±action, discount

@@ -112,6 +112,7 @@ def test_checkpoint_round_trip(tmp_path):
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+@pytest.mark.slow
 def test_interrupted_run_resumes_where_it_stopped(tmp_path):
   out = str(tmp_path / "run")
   # The resumed run (in this process) reuses the interrupted one's compilations.
@@ -166,6 +167,7 @@ def test_interrupted_run_resumes_where_it_stopped(tmp_path):
   jax.config.update("jax_compilation_cache_dir", None)
 
 
+@pytest.mark.slow
 def test_host_and_device_drivers_train_identical_agents(tmp_path):
   # One training step, two drivers: fed the same frames (the ray caster's), the
   # host driver (jitted act/learn/store around the env) and the device driver
@@ -182,6 +184,7 @@ def test_host_and_device_drivers_train_identical_agents(tmp_path):
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+@pytest.mark.slow
 def test_env_groups_step_in_turn_and_store_each_groups_own_frames(tmp_path, monkeypatch):
   # Two env groups (the host driver's double-buffered sampling): the groups store
   # in turn, each group's stored observations are its own consecutive frame
@@ -221,6 +224,7 @@ def test_env_groups_step_in_turn_and_store_each_groups_own_frames(tmp_path, monk
                                        physics="device", **base))
 
 
+@pytest.mark.slow
 def test_agents_sharded_over_two_devices_or_mapped_match_one_vmapped_call():
   script = textwrap.dedent("""
       import dataclasses

@@ -96,6 +96,7 @@ def test_mujoco_dynamics_unchanged_by_looks(domain, bank):
     np.testing.assert_array_equal(d.act, d0.act)
 
 
+@pytest.mark.slow
 def test_mjx_trajectories_identical_for_any_look(bank):
   """MJX steps the physics model and render models with different looks identically."""
   from dmcr_jax import models
