@@ -32,7 +32,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import datetime
 import functools
 import json

@@ -407,7 +407,7 @@ def markdown(summary: dict) -> str:
   papers = [g for g in groups if g["paper"] is not None]
   lines += [paper_line(g) for g in papers]
   if papers:
-    lines += ["", f"Paper rows are its Table 4 (five runs; its \"None\" column, shown "
+    lines += ["", "Paper rows are its Table 4 (five runs; its \"None\" column, shown "
                   "under both train and none)."]
   lines += ["", "E_G per condition (mean return of each "
             + ("augmentation's agents" if len(groups) > 1 else "agent set")

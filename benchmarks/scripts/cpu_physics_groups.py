@@ -1,11 +1,10 @@
 """Experiment: MJX physics of N envs on the host CPU split into k groups, group i on XLA:CPU device i (one jit, async dispatch)."""
-import os, sys, time, json
+import os, time, json
 import jax
 ndev = int(os.environ.get("NDEV", "16"))
 jax.config.update("jax_num_cpu_devices", ndev)
-import jax.numpy as jnp
 import numpy as np
-import dmcr_jax
+import dmcr_jax  # noqa: F401 (sets MUJOCO_GL and the XLA:CPU flag before JAX starts)
 from dmcr_jax import models, physics_env
 
 def timeit(f, n=20):

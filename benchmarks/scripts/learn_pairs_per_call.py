@@ -1,7 +1,7 @@
 """Experiment: seconds per train.step.learn_jit call against update pairs per call (per-call overhead)."""
 import time, json
 import jax
-import dmcr_jax
+import dmcr_jax  # noqa: F401 (sets MUJOCO_GL and the XLA:CPU flag before JAX starts)
 from train import sac, step as train_step
 from benchmarks.learner import filled_buffers, _agents
 cfg = sac.SACConfig(compute_dtype="bfloat16")

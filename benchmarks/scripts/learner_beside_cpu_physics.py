@@ -1,7 +1,7 @@
 """Experiment: the learner's updates/s alone vs with MJX physics stepping on XLA:CPU in another thread."""
-import threading, time, json, os
-import jax, jax.numpy as jnp, numpy as np
-import dmcr_jax
+import threading, time
+import jax, numpy as np
+import dmcr_jax  # noqa: F401 (sets MUJOCO_GL and the XLA:CPU flag before JAX starts)
 from dmcr_jax import models, physics_env
 from train import sac, step as train_step
 from benchmarks.learner import filled_buffers, _agents

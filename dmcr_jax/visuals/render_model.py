@@ -39,7 +39,6 @@ the reference that batched render pools must match.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from typing import Any, Mapping
 
@@ -49,7 +48,7 @@ import numpy as np
 from dmcr_jax.models.names import FIELD_OBJECTS, obj_id, suite_model, suite_xml
 from dmcr_jax.visuals import ranges as R
 from dmcr_jax.visuals.factors import check_domain
-from dmcr_jax.visuals.params import FACTOR_INDEX, VisualParams, defaults, sample
+from dmcr_jax.visuals.params import FACTOR_INDEX, VisualParams, sample
 from dmcr_jax.visuals.textures import TextureBank, load_bank
 
 _O = mujoco.mjtObj

@@ -252,7 +252,7 @@ def _palette(t, stops: Sequence[np.ndarray], pos: Sequence[float] | None = None)
   t = np.clip(t, F32(0), F32(1))[..., None]
   out = np.broadcast_to(np.asarray(stops[0], F32), t.shape[:-1] + (3,)).copy()
   for k in range(1, n):
-    a, b = F32(pos[k - 1]), F32(pos[k])
+    a = F32(pos[k - 1])
     w = np.clip((t - a) * F32(1.0 / max(pos[k] - pos[k - 1], 1e-6)), F32(0), F32(1))
     out = out + (np.asarray(stops[k], F32) - np.asarray(stops[k - 1], F32)) * w
   return out
