@@ -129,6 +129,7 @@ def run(train_argv: list[str], threshold: float, run_dir: str, baseline: bool = 
       threshold=threshold, step_at_threshold=hit and hit["step"],
       time_to_threshold_s=hit and hit["wall_s"], interrupted=summary["interrupted"],
       host_seconds=summary.get("host_seconds"), env_seconds=summary.get("env_seconds"),
+      steady=summary.get("steady"),
       train_args=list(train_argv), run_dir=run_dir,
       time_utc=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"))
 

@@ -70,6 +70,7 @@ import os
 import signal
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import jax.numpy as jnp
@@ -559,6 +560,25 @@ class RunLog:
     self.recent: list[float] = []
     self.host_s: dict[str, float] = {}
     self.env_s: dict[str, float] = {}
+    self._steady_from = None  # (step, wall, host_s, env_s) where `steady` starts
+
+  def mark_steady(self, step: int, env_s: dict[str, float]) -> None:
+    """Starts the steady window of the host breakdown at `step` (once; later calls
+    do nothing): the first episode end past the warm-up, when the act and update
+    steps have compiled."""
+    if self._steady_from is None:
+      self._steady_from = (step, self.wall(), dict(self.host_s), dict(env_s))
+
+  def steady(self, step: int) -> dict | None:
+    """The loop's breakdown from `mark_steady` to `step` (summary.json's
+    "steady"): transitions per agent, wall seconds, and the seconds of each host
+    part and env part; None if never marked."""
+    if self._steady_from is None:
+      return None
+    s0, w0, host0, env0 = self._steady_from
+    diff = lambda now, then: {k: v - then.get(k, 0.0) for k, v in now.items()}
+    return dict(steps=step - s0, wall_s=self.wall() - w0,
+                host_seconds=diff(self.host_s, host0), env_seconds=diff(self.env_s, env0))
 
   @contextlib.contextmanager
   def timed(self, part: str):
@@ -643,8 +663,8 @@ def finish(cfg: TrainConfig, step: int, log: RunLog) -> dict:
   summary = dict(task=cfg.task, seeds=list(cfg.seeds), augs=list(cfg.sac.aug_names),
                  steps=step, num_envs=cfg.num_envs, interrupted=log.stopped,
                  wall_s=log.wall(),
-                 **({"host_seconds": log.host_s, "env_seconds": log.env_s}
-                    if log.host_s else {}),
+                 **({"host_seconds": log.host_s, "env_seconds": log.env_s,
+                     "steady": log.steady(step)} if log.host_s else {}),
                  final_return=plot_learning_curve(log.path, os.path.join(
                      cfg.out_dir, "learning_curve.png"), specs, log.looks))
   if log.looks is not None:
@@ -705,7 +725,8 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
   episode: step, agent, seed, augmentation, return, wall time, transitions/s and
   the latest update metrics), `<out_dir>/learning_curve.png`,
   `<out_dir>/summary.json` (with the host driver also the seconds its loop spent
-  in each part, "host_seconds", and in the env's parts, "env_seconds") and the
+  in each part, "host_seconds", and in the env's parts, "env_seconds", over the
+  whole run and, under "steady", from the first episode end past the warm-up) and the
   checkpoints. With the JAX renderer and the
   physics on the learner's device the run is `train.device_loop.train` (same
   outputs).
@@ -747,10 +768,14 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
       return learner, owed, ready
 
     log = RunLog(cfg, start, resume, progress)
+    env_seconds = lambda: {part: sum(env.timings[part] for env in envs)
+                           for part in envs[0].timing_parts}
     owed, ready = np.float32(0), False
     # Per group: its current observations and episode-start flags; `in_flight`
     # holds what `store` needs of a group stepping (dispatched, not yet waited).
     obs, first, in_flight = [None] * groups, [None] * groups, {}
+    # The launch of the latest updates, a future of (learner, owed, ready).
+    updates, learning = stack.enter_context(ThreadPoolExecutor(1, "updates")), None
     try:
       for g, env in enumerate(envs):
         obs[g], info = env.reset(seed=group_seed(int(cfg.seeds[0]) + start, g))
@@ -760,22 +785,26 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
       while True:
         acting = acted < cfg.steps and not log.stopped
         if acting:  # group g acts and steps; the updates owed run meanwhile
+          if learning is not None:  # (env groups: no group was stored since)
+            with log.timed("learn"):
+              (learner, owed, ready), learning = learning.result(), None
           with log.timed("act"):  # includes waiting for the updates queued before
             o, f = put(obs[g]), put(first[g])
             learner, action, env_action = train_step.act_jit(learner, o, spec=spec,
                                                              mesh=mesh)
             env_action = np.asarray(env_action)
-          # Dispatched before the physics when it steps elsewhere (the host CPU),
-          # after it when it shares their device (it then leaves the queue first,
-          # and the CPU renders while the updates run).
-          if not physics_first:
-            with log.timed("learn"):
-              learner, owed, ready = learn(learner, owed, ready, acted)
-          with log.timed("env_step_async"):
-            envs[g].step_async(env_action)
+          # The updates owed are launched from another thread (launching their
+          # kernels holds a thread for a large part of their run) while this one
+          # steps the env. Physics on the updates' device is dispatched first (it
+          # then leaves the queue first, and the host renders while the updates
+          # run).
           if physics_first:
-            with log.timed("learn"):
-              learner, owed, ready = learn(learner, owed, ready, acted)
+            with log.timed("env_step_async"):
+              envs[g].step_async(env_action)
+          learning = updates.submit(learn, learner, owed, ready, acted)
+          if not physics_first:
+            with log.timed("env_step_async"):
+              envs[g].step_async(env_action)
           in_flight[g] = (o, f, action)
           acted += n
         g = (g + 1) % groups  # the group stepped longest ago finishes and acts next
@@ -783,6 +812,9 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
           with log.timed("env_step_wait"):
             next_obs, reward, _, truncated, info = envs[g].step_wait()
           o, f, action = in_flight.pop(g)
+          if learning is not None:
+            with log.timed("learn"):  # waits until the updates are launched
+              (learner, owed, ready), learning = learning.result(), None
           with log.timed("store"):
             learner = train_step.store_jit(learner, o, f, action, put(reward), spec=spec,
                                            mesh=mesh, group=g)
@@ -790,6 +822,8 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
           obs[g], first[g] = next_obs, info["episode_step"] == 0
           wall = log.wall()
           metrics = jax.device_get(learner.metrics) if truncated.any() else {}
+          if truncated.any() and stored > cfg.warmup_steps:
+            log.mark_steady(stored, env_seconds())
           for i in np.flatnonzero(truncated):
             log.episode(stored, int(i // n), float(info["episode_return"][i]), wall,
                         metrics)
@@ -799,8 +833,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
             _save(manager, stored, learner.agents, learner.key)
         if not acting and not in_flight:
           break
-      log.env_s = {part: sum(env.timings[part] for env in envs)
-                   for part in envs[0].timing_parts}
+      log.env_s = env_seconds()
       if manager.latest_step() != stored:
         _save(manager, stored, learner.agents, learner.key)
     finally:

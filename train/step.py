@@ -29,8 +29,9 @@ one RNG stream whichever driver runs the step.
 
 The drivers: `train.loop` (host driver) jits `act`, `learn` and `store` around a
 gymnasium vector env (the render pool, or the JAX renderer with the physics on
-the host CPU) and dispatches `learn` between the env's `step_async` and
-`step_wait`, so the accelerator runs the updates while the env steps;
+the host CPU) and launches `learn` from a second thread while its own steps the
+env (`step_async`, `step_wait`), so the accelerator runs the updates while the
+env steps;
 `train.device_loop` (device driver) scans them around `jax_env.PixelEnv.step` in
 one XLA call per chunk of steps.
 

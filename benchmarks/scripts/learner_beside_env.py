@@ -8,7 +8,8 @@ how much, and in which of the env's parts (`env.timings`: physics, transfer, ren
 copy, in ms per agent step).
 
     PYTHONPATH=$PWD MUJOCO_GL=egl python3 benchmarks/scripts/learner_beside_env.py \\
-        [--task ball_in_cup-catch] [--num-envs 16] [--renderer pool] [--seconds 10]
+        [--task ball_in_cup-catch] [--num-envs 16] [--renderer pool] [--seconds 10] \\
+        [--gl osmesa] [--workers 16]
 
 One JSON line per setting on stdout.
 """
@@ -73,15 +74,18 @@ def main():
   p.add_argument("--num-envs", type=int, default=16)
   p.add_argument("--renderer", default="pool", choices=("pool", "jax"))
   p.add_argument("--seconds", type=float, default=10.0)
+  p.add_argument("--gl", default=None, choices=("egl", "osmesa"), help="the pool's GL backend")
+  p.add_argument("--workers", type=int, default=None, help="the pool's worker processes")
   a = p.parse_args()
-  extra = dict(quality="exact") if a.renderer == "pool" else dict(obs_on_device=True)
+  extra = (dict(quality="exact", gl=a.gl, workers=a.workers) if a.renderer == "pool"
+           else dict(obs_on_device=True))
   env = dmcr_jax.make(a.task, num_envs=a.num_envs, renderer=a.renderer, image_size=84,
                       physics_device="cpu", **extra)
   with env:
     learn = learner_loop(a.seconds)
     step_env = env_loop(env, a.seconds)
-    base = dict(task=a.task, num_envs=a.num_envs, renderer=a.renderer,
-                device=jax.devices()[0].device_kind)
+    base = dict(task=a.task, num_envs=a.num_envs, renderer=a.renderer, gl=a.gl,
+                workers=a.workers, device=jax.devices()[0].device_kind)
     print(json.dumps(dict(base, setting="learner alone", updates_per_s=round(learn(), 1))),
           flush=True)
     rate, parts = step_env()
