@@ -22,7 +22,7 @@ uint8 images ``(B, H, W, 3·stack)``, channels-last, in; same shapes, uint8, out
 Your own augmentation: write it for ONE sample, ``fn(key, image) -> image`` on a
 uint8 ``(H, W, 3·stack)`` image (the built-ins' convention, see below), then
 ``register("mine", fn)`` so that `get`, ``"mine+drq"``, `SACConfig.aug` and
-``train --aug`` know it, or name it by import path, ``"package.module:function"``
+``dmcr-train --aug`` know it, or name it by import path, ``"package.module:function"``
 (`load`), which every one of those accepts too. `check` runs the properties the
 learner relies on against real rendered observations (`dmcr_jax.augment_check`).
 
@@ -853,7 +853,7 @@ def register(name: str, fn: SampleAugFn | Augmentation | Composed
   """Registers `fn` as augmentation `name` for `get`, ``"name+drq"`` and training.
 
   After ``register("mine", fn)``, ``get("mine")``, ``get("mine+drq")``,
-  ``SACConfig(aug="drq,mine+drq")`` and ``train --aug mine`` (in a process that
+  ``SACConfig(aug="drq,mine+drq")`` and ``dmcr-train --aug mine`` (in a process that
   registered it) accept the name. Registering a name again replaces it for later
   `get` calls (functions already compiled keep the old one).
 

@@ -1,6 +1,6 @@
-"""An augmentation of your own: a random hue rotation, for `train --aug`.
+"""An augmentation of your own: a random hue rotation, for `dmcr-train --aug`.
 
-    train --task cartpole-balance --aug drq,cj+drq,examples.augmentations:hue_rotation+drq
+    dmcr-train --task cartpole-balance --aug drq,cj+drq,examples.augmentations:hue_rotation+drq
 
 See docs/augmentations.md. Like every built-in, it is written for ONE sample.
 """

@@ -50,7 +50,7 @@ def assert_clean_error(code, stderr, prog, match):
 def test_evaluate_without_a_checkpoint_fails_cleanly_and_exits(run_without_checkpoint):
   # It printed a FileNotFoundError inside 250-430 lines of noise and at times never exited.
   code, stdout, stderr = run(["-m", "train.evaluate", run_without_checkpoint], timeout=120)
-  assert_clean_error(code, stderr, "evaluate", "no checkpoint")
+  assert_clean_error(code, stderr, "dmcr-evaluate", "no checkpoint")
   assert stdout == ""
   assert not os.path.exists(os.path.join(run_without_checkpoint, "eval"))
 
@@ -62,7 +62,7 @@ def test_evaluate_refuses_agents_out_of_range(run_without_checkpoint):
                           timeout=120)
   finally:
     os.rmdir(os.path.join(run_without_checkpoint, "checkpoints", "5"))
-  assert_clean_error(code, stderr, "evaluate", "agents must be indices in [0, 2)")
+  assert_clean_error(code, stderr, "dmcr-evaluate", "agents must be indices in [0, 2)")
 
 
 def test_train_refuses_bad_arguments_before_creating_the_folder(tmp_path):
@@ -70,7 +70,7 @@ def test_train_refuses_bad_arguments_before_creating_the_folder(tmp_path):
   for args, match in ((["--visual-seeds", "-1"], "visual_seeds -1: not a seed in"),
                       (["--resume"], "no run in")):
     code, _, stderr = run(["-m", "train", "--out", out, "--steps", "10"] + args, timeout=120)
-    assert_clean_error(code, stderr, "train", match)
+    assert_clean_error(code, stderr, "dmcr-train", match)
     assert not os.path.exists(out)
 
 
@@ -104,7 +104,7 @@ def test_train_imports_and_checks_your_augmentation_before_compiling(tmp_path):
                                                   "observations 12×32×32×9 uint8: uint8")):
     code, _, stderr = run(["-m", "train", "--out", out, "--steps", "10", "--image-size",
                            "32", "--aug", aug], timeout=180, PYTHONPATH=path)
-    assert_clean_error(code, stderr, "train", match)
+    assert_clean_error(code, stderr, "dmcr-train", match)
     assert not os.path.exists(out)
 
 

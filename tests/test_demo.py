@@ -81,7 +81,7 @@ def test_demo_writes_its_files_and_refuses_to_overwrite_them(tmp_path, capsys):
     assert "| seed 0, drq |" in f.read()
   assert result["train"]["steps"] == 24 and result["last_return"] is not None
   text = dm.report(TINY, result)
-  assert "What it cannot show" in text and "train --task cartpole-balance --steps 50000" in text
+  assert "What it cannot show" in text and "dmcr-train --task cartpole-balance --steps 50000" in text
   assert all(path in text for path in files.values())
   # A second demo into the same folder is refused before anything is done.
   with pytest.raises(ValueError, match="already holds a demo run"):

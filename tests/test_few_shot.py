@@ -1,4 +1,4 @@
-"""Few-shot training across visual seeds: `train --visual-seeds levels:1,10,…` trains
+"""Few-shot training across visual seeds: `dmcr-train --visual-seeds levels:1,10,…` trains
 one agent per training-look range, each agent's envs drawing their looks from its own
 range (both renderers), a seed's look is the same in every range, bad specs are refused
 before anything is built, and `evaluate` draws the generalisation curve.

@@ -1,4 +1,4 @@
-"""`make(..., renderer="jax")` and `train --renderer jax`: the JAX env's physics equal
+"""`make(..., renderer="jax")` and `dmcr-train --renderer jax`: the JAX env's physics equal
 the pool env's, its frames are close to MuJoCo's, NEXT_STEP auto-reset and frame
 stacks, determinism, few-shot looks made on the device, bad arguments, and the
 device training loop (chunks, log, checkpoints, resume, the host loop's update count).
@@ -40,7 +40,7 @@ def _make(renderer, **kwargs):
 @pytest.fixture(scope="module")
 def envs():
   # The one-compilation check counts this module's envs only (other tests in the
-  # same process, e.g. `train --renderer jax` with the physics on the CPU, step
+  # same process, e.g. `dmcr-train --renderer jax` with the physics on the CPU, step
   # envs of other sizes through the same jitted function).
   jax_env.step.clear_cache()
   with _make("jax") as jenv, _make("pool", workers=1) as penv:

@@ -1,7 +1,7 @@
 """`train` / `python -m train`: train SAC+AUG, CURL or SAC+AE agents on a DMCR task from pixels.
 
-    train --task cartpole-balance --steps 50000 --seeds 0,1,2 --aug drq
-    train --task cartpole-balance --algo curl      # or --algo sac_ae
+    dmcr-train --task cartpole-balance --steps 50000 --seeds 0,1,2 --aug drq
+    dmcr-train --task cartpole-balance --algo curl      # or --algo sac_ae
 
 One agent per seed and augmentation (`--aug drq,cj+drq --seeds 0,1,2`: 6 agents,
 trained together in one process), and per training-look range
@@ -62,7 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
   """The `train` command line (defaults from `TrainConfig` and `SACConfig`)."""
   from dmcr_jax.visuals.tiled import QUALITY
   d, s = TrainConfig(), SACConfig()
-  p = argparse.ArgumentParser(prog="train", description=__doc__.splitlines()[0],
+  p = argparse.ArgumentParser(prog="dmcr-train", description=__doc__.splitlines()[0],
                               formatter_class=HelpFormatter)
   p.add_argument("--task", default=d.task, help="a DMCR task")
   p.add_argument("--algo", default=s.algo, choices=ALGOS, help="learner")

@@ -22,12 +22,12 @@ that batch runs once.
 The generalisation error of a condition is E_G = (train − test) / train (paper
 Sec. 3). Outputs: a JSON file, a Markdown table laid out like the paper's Table 4
 (with the paper's row for the task and each method when it has one) and a bar
-chart. A run that trained several augmentations (``train --aug drq,cj+drq,mine+drq``)
+chart. A run that trained several augmentations (``dmcr-train --aug drq,cj+drq,mine+drq``)
 is compared side by side: per augmentation the mean over its seeds, each
 condition's return and E_G, beside the paper's rows (``"augs"`` in the JSON; one
 row per augmentation in both tables; grouped bars in the chart).
 
-Few-shot runs (`train --visual-seeds levels:1,10,…`, one agent per training-look
+Few-shot runs (`dmcr-train --visual-seeds levels:1,10,…`, one agent per training-look
 range): every agent meets the same held-out test looks; an agent's "train" return
 is taken at looks drawn from its own range (seeds drawn with the same generator
 seed). The run's generalisation curve follows: test return per condition and
@@ -35,8 +35,8 @@ E_G against the number of training looks (`few_shot.json`, `few_shot.md`,
 `few_shot.png`), with the zero-shot agents' (levels:1, dm_control's look) "all"
 returns as reference lines where the run has them.
 
-    evaluate runs/cartpole-balance-drq            # or: python -m train.evaluate …
-    evaluate runs/cartpole-balance-drq --invariance --attention --video
+    dmcr-evaluate runs/cartpole-balance-drq            # or: python -m train.evaluate …
+    dmcr-evaluate runs/cartpole-balance-drq --invariance --attention --video
 """
 
 from __future__ import annotations
@@ -618,11 +618,11 @@ def check_run(run_dir: str, agents: list[int] | None) -> loop.TrainConfig:
 
 
 def main(argv=None) -> None:
-  """`evaluate RUN_DIR [options]`."""
+  """`dmcr-evaluate RUN_DIR [options]`."""
   from dmcr_jax.visuals.tiled import QUALITY
   from train.__main__ import HelpFormatter
   d = EvalConfig()
-  p = argparse.ArgumentParser(prog="evaluate", description=__doc__.splitlines()[0],
+  p = argparse.ArgumentParser(prog="dmcr-evaluate", description=__doc__.splitlines()[0],
                               formatter_class=HelpFormatter)
   p.add_argument("run_dir", help="a `train` output folder")
   p.add_argument("--visual-seeds", type=int, default=d.visual_seeds,
