@@ -148,9 +148,11 @@ _PLANS: dict[str, dict[str, list[tuple[str, str, tuple[str, ...]]]]] = {
         "step_profile": [("", "benchmarks.step_profile", (
             "--task", "walker-walk", "--sizes", "1024", "--quality", "fastest",
             "--steps", "20", "--batch", "256", "--capacity", "100000"))],
-        "train": [("", "benchmarks.training", (
-            "--task", "cartpole-balance", "--steps", "50000", "--num-envs", "16",
-            "--dtype", "bfloat16", "--quality", "exact", "--log-every", "500"))],
+        # Issue 26's measure: end to end against the learner alone, both renderers.
+        "train": [(suffix, "benchmarks.training", (
+            "--task", "ball_in_cup-catch", "--steps", "12000", "--num-envs", "16",
+            "--dtype", "bfloat16", "--quality", "exact", "--log-every", "500") + extra)
+            for suffix, extra in (("", ()), ("-jax", ("--renderer", "jax")))],
     },
 }
 
@@ -586,13 +588,16 @@ def _norm_train(rows: list[dict]) -> list[dict]:
   out = []
   for r in rows:
     out.append(make_row(
-        "train", f"{r['task']} {r.get('dtype', '')}".strip(), batch=r.get("num_envs"),
-        throughput=r.get("transitions_per_s"), unit="transitions/s",
+        "train", f"{r['task']} {r.get('renderer', '')} {r.get('dtype', '')}".strip(),
+        batch=r.get("num_envs"), throughput=r.get("transitions_per_s"), unit="transitions/s",
         compile_s=None, run_s=r.get("wall_s"),
         sizes=dict(task=r["task"], steps=r.get("steps"), num_envs=r.get("num_envs"),
                    agents=r.get("agents"), quality=r.get("quality"), dtype=r.get("dtype"),
                    batch=r.get("batch_size")),
-        extra=dict(final_return=r.get("final_return"), threshold=r.get("threshold"),
+        extra=dict(steady_transitions_per_s=r.get("steady_transitions_per_s"),
+                   learner_updates_per_s=r.get("learner_updates_per_s"),
+                   ratio=r.get("ratio"), renderer=r.get("renderer"),
+                   final_return=r.get("final_return"), threshold=r.get("threshold"),
                    step_at_threshold=r.get("step_at_threshold"),
                    time_to_threshold_s=r.get("time_to_threshold_s"),
                    process_s=r.get("process_s"), run_dir=r.get("run_dir")),
@@ -722,6 +727,9 @@ def _headline_value(r: dict) -> str:
   if r["benchmark"] == "train":
     e = r["extra"]
     text = f"{_secs(r['run_s'])} s for {r['sizes'].get('steps'):,} steps"
+    if e.get("ratio") is not None:
+      text += (f", {e['steady_transitions_per_s']:,.1f} transitions/s steady against "
+               f"{e['learner_updates_per_s']:,.1f} updates/s alone (ratio {e['ratio']:.2f})")
     if e.get("final_return") is not None:
       text += f", final return {e['final_return']:.1f}"
     if e.get("time_to_threshold_s") is not None:
@@ -744,8 +752,9 @@ def _setting(r: dict) -> str:
   if r["benchmark"] == "learner":
     return f"{r['variant']}, batch {r['batch']:,}"
   if r["benchmark"] == "train":
-    return (f"{s.get('task')}, N = {s.get('num_envs')}, {s.get('dtype') or ''} "
-            f"{s.get('quality') or ''}").strip()
+    renderer = r["extra"].get("renderer") or ""
+    return (f"{s.get('task')}, {renderer + ', ' if renderer else ''}N = {s.get('num_envs')}, "
+            f"{s.get('dtype') or ''} {s.get('quality') or ''}").strip()
   return r["variant"]
 
 
