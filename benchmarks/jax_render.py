@@ -55,7 +55,6 @@ def _device() -> str:
 
 def inputs(task: str, n: int, states: int = 256, seed: int = 0):
   """(scene, batched BodyPoses, batched DeviceLook) for n envs of `task`."""
-  import jax
   import jax.numpy as jnp
   import mujoco
   from dmcr_jax.visuals import jax_render_scene as JS

@@ -22,11 +22,19 @@ A/B of how the encoders' inputs are computed; "unstaged" in the agent-loop colum
 ``--cost`` instead prints XLA's cost analysis of one update (GFLOP and GB accessed,
 from the compiled module; nothing runs), which turns updates/s into FLOP/s.
 
+``--devices 1,2,4,8`` measures each row's agents sharded over that many local
+devices (as `train` shards them: `shard_map` over the agent axis, K / D agents
+per device), one row per count; every count must divide every K of ``--agents``
+(1 always does) and be at most the local device count, or the run is refused
+before anything compiles. With several counts each row also carries its scaling
+efficiency: its agent-updates/s over D times those of the same row on one device
+(1.0: linear).
+
 Usage::
 
     python -m benchmarks.learner [--agents 1,8] [--dtypes float32,bfloat16] \\
         [--loops vmap,map] [--algos sac_aug,curl,sac_ae] [--augs drq,cj+drq] [--batch 256] \\
-        [--pairs 25] [--stage-inputs on,off] [--out PATH]
+        [--pairs 25] [--stage-inputs on,off] [--devices 1,2,4,8] [--out PATH]
 """
 
 from __future__ import annotations
@@ -64,6 +72,49 @@ def filled_buffers(k: int, capacity: int, size: int, stack: int, action_size: in
       count=jnp.full((k, 1), t, jnp.int32))
 
 
+def device_counts(text: str, agents: list[int], available: int) -> list[int]:
+  """`--devices`' comma-separated counts, sorted and deduplicated.
+
+  Args:
+    text: e.g. "1,2,4".
+    agents: every K the run measures; each count must divide each of them (1
+      always does).
+    available: the local device count.
+
+  Raises:
+    ValueError: naming the valid counts, for a count that is not a positive
+      int, exceeds `available` or does not divide some K.
+  """
+  valid = [n for n in range(1, available + 1)
+           if all(n in loop.valid_device_counts(k, available) for k in agents)]
+  where = (f"valid counts for K = {','.join(map(str, agents))} on {available} local "
+           f"device{'s' if available != 1 else ''}: {', '.join(map(str, valid))}")
+  counts = []
+  for item in text.split(","):
+    item = item.strip()
+    if not item.isdigit() or int(item) < 1:
+      raise ValueError(f"{item!r} is not a positive device count; {where}")
+    n = int(item)
+    if n > available:
+      raise ValueError(f"{n} devices: more than the local devices; {where}")
+    if n not in valid:
+      odd = [k for k in agents if k % n]
+      raise ValueError(f"{n} devices: K = {','.join(map(str, odd))} agents is not a "
+                       f"multiple of {n} (each device takes K / {n} agents); {where}")
+    counts.append(n)
+  return sorted(set(counts))
+
+
+def scaling_efficiency(rate: float | None, rate_one: float | None, devices: int
+                       ) -> float | None:
+  """`rate` (a total over all agents, per second) on `devices` devices over
+  `devices` × `rate_one`, the same measurement on one device (1.0: linear
+  scaling); None when either rate is missing."""
+  if not rate or not rate_one:
+    return None
+  return round(rate / (devices * rate_one), 3)
+
+
 def _agents(k: int, obs_shape, action_size: int, config: sac.SACConfig):
   return jax.vmap(lambda s: sac.init_agent(jax.random.key(s), obs_shape, action_size,
                                            config))(jnp.arange(k))
@@ -85,13 +136,15 @@ def scanned_workload(k: int = 1, dtype: str = "float32", agent_loop: str = "vmap
                      batch: int | None = None, pairs: int = 25, size: int = 84,
                      stack: int = 3, action_size: int = 6, capacity: int = 10_000,
                      algo: str = "sac_aug", aug: str | None = None,
-                     stage_inputs: bool = True):
+                     stage_inputs: bool = True, devices: int = 1):
   """`train.step.learn_jit` for K agents on full random buffers, ready to call repeatedly.
 
   `batch` None takes the algorithm's default; for CURL the frames are rendered
   ``curl_crop + 16`` pixels (`size` is the encoder's input). `aug` None takes
   the algorithm's default augmentation (SAC+AUG: DrQ). `stage_inputs` is
-  `sac.SACConfig.stage_inputs`.
+  `sac.SACConfig.stage_inputs`. `devices`: the agents and their buffers are
+  sharded over that many local devices, as `train` shards them
+  (`train.loop.agent_mesh`; it must divide K).
 
   Returns:
     (call, config, frame side): ``call()`` runs `pairs` update pairs of every
@@ -108,9 +161,11 @@ def scanned_workload(k: int = 1, dtype: str = "float32", agent_loop: str = "vmap
   spec = train_step.StepSpec(agents=k, num_envs=1, warmup_steps=0, utd=1.0, sac=config,
                              agent_loop=agent_loop, low=(-1.0,) * action_size,
                              high=(1.0,) * action_size)
-  learner = [train_step.init_learner(_agents(k, obs_shape, action_size, config), buffers,
-                                     jax.random.key(1), 0, spec)]
-  update = functools.partial(train_step.learn_jit, pairs=pairs, spec=spec)
+  mesh = loop.agent_mesh(k, devices)
+  learner = [train_step.init_learner(
+      loop.put_agents(_agents(k, obs_shape, action_size, config), mesh),
+      loop.put_agents(buffers, mesh), jax.random.key(1), 0, spec)]
+  update = functools.partial(train_step.learn_jit, pairs=pairs, spec=spec, mesh=mesh)
 
   def call():
     learner[0] = update(learner[0])   # donated: the buffers pass through unchanged
@@ -125,10 +180,12 @@ def scanned_workload(k: int = 1, dtype: str = "float32", agent_loop: str = "vmap
 def bench_scanned(k: int, dtype: str, agent_loop: str, batch: int | None, pairs: int,
                   size: int, stack: int, action_size: int, capacity: int, seconds: float,
                   algo: str = "sac_aug", aug: str | None = None,
-                  stage_inputs: bool = True) -> dict:
-  """Updates/s of `train.step.learn_jit` for K agents (`scanned_workload`); one result row."""
+                  stage_inputs: bool = True, devices: int = 1) -> dict:
+  """Updates/s of `train.step.learn_jit` for K agents sharded over `devices` local
+  devices (`scanned_workload`); one result row."""
   call, config, size = scanned_workload(k, dtype, agent_loop, batch, pairs, size, stack,
-                                        action_size, capacity, algo, aug, stage_inputs)
+                                        action_size, capacity, algo, aug, stage_inputs,
+                                        devices)
   t0 = time.perf_counter()
   jax.block_until_ready(call())  # compiles
   compile_s = time.perf_counter() - t0
@@ -138,7 +195,7 @@ def bench_scanned(k: int, dtype: str, agent_loop: str, batch: int | None, pairs:
   per_call = float(np.median(times))
   updates = 2 * pairs
   return dict(kind="scanned", algo=algo, aug=",".join(config.aug_names) or "-", agents=k,
-              dtype=dtype, agent_loop=agent_loop, stage_inputs=stage_inputs,
+              devices=devices, dtype=dtype, agent_loop=agent_loop, stage_inputs=stage_inputs,
               batch=config.batch_size, frame_side=size,
               pairs_per_call=pairs, compile_s=round(compile_s, 2), reps=int(times.size),
               ms_per_call=round(per_call * 1e3, 3),
@@ -177,7 +234,8 @@ def bench_python_loop(batch: int | None, size: int, stack: int, action_size: int
   _, agent = _timed(call, agent, 0.0, 1)
   times, _ = _timed(call, agent, seconds)
   per_update = float(np.median(times)) / n
-  return dict(kind="python_loop", algo="sac_aug", agents=1, dtype="float32", agent_loop="-",
+  return dict(kind="python_loop", algo="sac_aug", agents=1, devices=1, dtype="float32",
+              agent_loop="-",
               batch=batch,
               pairs_per_call=0, compile_s=round(compile_s, 2), reps=int(times.size),
               ms_per_call=round(per_update * 1e3, 3),
@@ -187,20 +245,21 @@ def bench_python_loop(batch: int | None, size: int, stack: int, action_size: int
 
 def markdown(rows: list[dict]) -> str:
   """All rows as one Markdown table, newest last."""
-  lines = ["| device | kind | algo | aug | agents | dtype | agent loop | batch | "
+  lines = ["| device | kind | algo | aug | agents | devices | dtype | agent loop | batch | "
            "updates per call | compile s | ms per call | updates/s per agent | "
-           "agent-updates/s | × baseline | UTC |",
-           "|---|---|---|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---|"]
+           "agent-updates/s | scaling | × baseline | UTC |",
+           "|---|---|---|---|---:|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
   for r in rows:
-    ratio = r.get("x_baseline")
+    ratio, scaling = r.get("x_baseline"), r.get("scaling_efficiency")
     lines.append(
         f"| {r['device_kind']} | {r['kind']} | {r.get('algo', 'sac_aug')} | "
         f"{r.get('aug', 'drq' if r.get('algo', 'sac_aug') == 'sac_aug' else '-')} | "
-        f"{r['agents']} | "
+        f"{r['agents']} | {r.get('devices', 1)} | "
         f"{r['dtype']} | "
         f"{r['agent_loop']}{'' if r.get('stage_inputs', True) else ', unstaged'} | {r['batch']} | {2 * r['pairs_per_call'] or 1} | "
         f"{r['compile_s']:.1f} | {r['ms_per_call']:.1f} | "
         f"{r['updates_per_s_per_agent']:,.0f} | {r['agent_updates_per_s']:,.0f} | "
+        f"{'' if scaling is None else f'{scaling:.2f}'} | "
         f"{'' if ratio is None else f'{ratio:.1f}'} | {r['time_utc'][11:16]} |")
   return "\n".join(lines) + "\n"
 
@@ -245,9 +304,14 @@ def main(argv=None) -> None:
                  help="only print XLA's cost analysis (GFLOP and GB per update) of each "
                       "algorithm and dtype, one JSON line each, and stop (nothing is timed "
                       "or written)")
+  p.add_argument("--devices", default="1",
+                 help="comma-separated local device counts to shard the agents over, a "
+                      "row each (e.g. 1,2,4,8; each must divide every K; default: "
+                      "%(default)s)")
   p.add_argument("--out", default=None,
                  help="JSONL (default benchmarks/results/learner_<device>.jsonl)")
   a = p.parse_args(argv)
+  agents = [int(k) for k in a.agents.split(",")]
   for dtype in a.dtypes.split(","):
     sac.SACConfig(compute_dtype=dtype)  # fails early on a bad name
   augs = a.augs.split(",") if a.augs else [None]
@@ -268,6 +332,10 @@ def main(argv=None) -> None:
   for name in a.loops.split(","):
     if name not in loop.AGENT_LOOPS:
       p.error(f"--loops: {name!r} is not one of {', '.join(loop.AGENT_LOOPS)}")
+  try:
+    counts = device_counts(a.devices, agents, jax.local_device_count())
+  except ValueError as e:
+    p.error(f"--devices: {e}")
   if a.cost:
     for algo in a.algos.split(","):
       for dtype in a.dtypes.split(","):
@@ -290,19 +358,28 @@ def main(argv=None) -> None:
   if not a.no_baseline:
     todo.append(lambda: bench_python_loop(**shape))
   for algo, aug in [(al, au) for al in a.algos.split(",") for au in augs]:
-    for k in map(int, a.agents.split(",")):
+    for k in agents:
       for dtype in a.dtypes.split(","):
         for agent_loop in (a.loops.split(",") if k > 1 else ["vmap"]):
           for stage in stages:
-            todo.append(functools.partial(bench_scanned, k, dtype, agent_loop,
-                                          pairs=a.pairs, algo=algo, aug=aug,
-                                          stage_inputs=stage, **shape))
+            for n in counts:
+              todo.append(functools.partial(bench_scanned, k, dtype, agent_loop,
+                                            pairs=a.pairs, algo=algo, aug=aug,
+                                            stage_inputs=stage, devices=n, **shape))
+  one_device = {}  # a row's setting (all but its device count) → its rate on one
   for job in todo:
     row = dict(job(), **common)
     if row["kind"] == "python_loop":
       baseline = row["updates_per_s_per_agent"]
     if baseline:
       row["x_baseline"] = round(row["agent_updates_per_s"] / baseline, 2)
+    if len(counts) > 1 and row["kind"] == "scanned":
+      setting = tuple(row[key] for key in ("algo", "aug", "agents", "dtype", "agent_loop",
+                                           "stage_inputs", "batch"))
+      if row["devices"] == 1:
+        one_device[setting] = row["agent_updates_per_s"]
+      row["scaling_efficiency"] = scaling_efficiency(
+          row["agent_updates_per_s"], one_device.get(setting), row["devices"])
     print(json.dumps(row), flush=True)
     with open(out, "a") as f:
       f.write(json.dumps(row) + "\n")

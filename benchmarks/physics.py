@@ -33,7 +33,6 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 
 import jax
-import jax.numpy as jnp
 from mujoco import mjx
 
 from dmcr_jax import models

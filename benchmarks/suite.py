@@ -534,6 +534,12 @@ def _norm_augment(rows: list[dict]) -> list[dict]:
   return out
 
 
+def _on_devices(r: dict) -> str:
+  """A variant's suffix for a row sharded over several devices ("" for one)."""
+  n = r.get("devices") or 1
+  return f" on {n} devices" if n > 1 else ""
+
+
 def _norm_learner(rows: list[dict]) -> list[dict]:
   """`benchmarks.learner`: agent-updates/s; the python loop is the baseline."""
   out, base = [], None
@@ -552,7 +558,7 @@ def _norm_learner(rows: list[dict]) -> list[dict]:
                           is_baseline=True, sizes=sizes, extra=extra, **_common(r)))
       continue
     variant = ("" if algo == "sac_aug" else f"{algo} ") + f"K={r['agents']} {r['dtype']}" + (
-        f" {r['agent_loop']}" if r["agents"] > 1 else "")
+        f" {r['agent_loop']}" if r["agents"] > 1 else "") + _on_devices(r)
     out.append(make_row("learner", variant, batch=r["batch"],
                         throughput=r["agent_updates_per_s"], unit="agent-updates/s",
                         compile_s=r.get("compile_s"), run_s=r["ms_per_call"] / 1e3,
@@ -588,7 +594,8 @@ def _norm_train(rows: list[dict]) -> list[dict]:
   out = []
   for r in rows:
     out.append(make_row(
-        "train", f"{r['task']} {r.get('renderer', '')} {r.get('dtype', '')}".strip(),
+        "train",
+        f"{r['task']} {r.get('renderer', '')} {r.get('dtype', '')}".strip() + _on_devices(r),
         batch=r.get("num_envs"), throughput=r.get("transitions_per_s"), unit="transitions/s",
         compile_s=None, run_s=r.get("wall_s"),
         sizes=dict(task=r["task"], steps=r.get("steps"), num_envs=r.get("num_envs"),

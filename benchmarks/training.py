@@ -20,8 +20,20 @@ warm-up (so compilation and the random-action phase are left out), times `utd`;
 `ratio` = that rate over the learner's updates/s. 1.0 means the env costs the
 training loop nothing.
 
+Devices: `train` shards its K agents over the local devices (`train.loop`).
+``--devices 1,2,4,8`` runs the same training once per count, the agents
+sharded over that many local devices (each count at most the local device
+count and dividing K, and 1 with the device driver; otherwise the run is
+refused before anything compiles), each run with its learner-alone baseline on
+the same devices; without it, one run on the devices `train` picks. Each row
+carries its device count and the total steady rate over all agents (steady
+transitions/s per agent × K); with several counts also its scaling efficiency:
+that total over D times the one-device run's (1.0: linear; none when a run is
+too short for a steady rate: fewer than two episode ends past the warm-up).
+
     python -m benchmarks.training --out benchmarks/results/train_h100.jsonl
     python -m benchmarks.training --steps 2000 --num-envs 4 --quality fastest --out /tmp/t.jsonl
+    python -m benchmarks.training --devices 1,2 --seeds 0,1 --out /tmp/scaling.jsonl
 
 One JSON line per run appended to `--out`, a Markdown table beside it.
 """
@@ -73,9 +85,10 @@ def steady_rate(log_rows: list[dict], after_step: int) -> float | None:
   return (s1 - s0) / (w1 - w0)
 
 
-def learner_alone(cfg, seconds: float = 3.0) -> dict:
+def learner_alone(cfg, seconds: float = 3.0, devices: int = 1) -> dict:
   """`benchmarks.learner`'s row for the run's learner (agents, dtype, loop, batch,
-  augmentation, frames) on full random buffers."""
+  augmentation, frames) on full random buffers, the agents sharded over
+  `devices` local devices."""
   import jax
   from benchmarks import learner
   from dmcr_jax import models
@@ -86,22 +99,25 @@ def learner_alone(cfg, seconds: float = 3.0) -> dict:
       k, cfg.sac.compute_dtype, cfg.agent_loop or ("vmap" if on_cpu else "map"),
       cfg.sac.batch_size, 25, cfg.image_size if cfg.sac.algo != "curl" else cfg.sac.curl_crop,
       cfg.frame_stack, task.action_size, 10_000, seconds, cfg.sac.algo,
-      cfg.sac.aug if cfg.sac.algo == "sac_aug" else None)
+      cfg.sac.aug if cfg.sac.algo == "sac_aug" else None, devices=devices)
 
 
-def run(train_argv: list[str], threshold: float, run_dir: str, baseline: bool = True) -> dict:
-  """Trains with `train_argv` into `run_dir` (after timing the learner alone);
-  one result row."""
+def run(train_argv: list[str], threshold: float, run_dir: str, baseline: bool = True,
+        devices: int | None = None) -> dict:
+  """Trains with `train_argv` into `run_dir` (after timing the learner alone), the
+  agents sharded over `devices` local devices (None: as `train` picks); one
+  result row."""
   from train import __main__ as train_cli
   from train import loop
 
   cfg, _ = train_cli.parse(list(train_argv) + ["--out", run_dir])
-  alone = learner_alone(cfg) if baseline else None
+  used = 1 if device_driver(cfg) else loop.mesh_devices(len(cfg.agents()), devices)
+  alone = learner_alone(cfg, devices=used) if baseline else None
   if alone:
     print(f"learner alone: {alone['updates_per_s_per_agent']:.1f} updates/s per agent",
           flush=True)
   t0 = time.perf_counter()
-  summary = loop.train(cfg, progress=False)
+  summary = loop.train(cfg, progress=False, devices=devices)
   process_s = time.perf_counter() - t0
   with open(os.path.join(run_dir, "log.csv")) as f:
     log_rows = list(csv.DictReader(f))
@@ -117,12 +133,13 @@ def run(train_argv: list[str], threshold: float, run_dir: str, baseline: bool = 
   return dict(
       bench="train", device=device.device_kind, platform=device.platform,
       jax=jax.__version__, cpus=os.cpu_count(), task=cfg.task, steps=summary["steps"],
-      agents=agents, num_envs=cfg.num_envs, env_groups=cfg.env_groups, quality=cfg.quality,
+      agents=agents, devices=used, num_envs=cfg.num_envs, env_groups=cfg.env_groups, quality=cfg.quality,
       dtype=cfg.sac.compute_dtype, batch_size=cfg.sac.batch_size, utd=cfg.utd,
       action_repeat=cfg.action_repeat, wall_s=summary["wall_s"], process_s=process_s,
       transitions_per_s=summary["steps"] / summary["wall_s"] if summary["wall_s"] else None,
       renderer=cfg.renderer, physics=cfg.physics_device() or jax.default_backend(),
       steady_transitions_per_s=steady,
+      total_transitions_per_s=steady * agents if steady else None,
       learner_updates_per_s=updates_alone,
       ratio=(steady * cfg.utd / updates_alone) if steady and updates_alone else None,
       episodes=len(log_rows), final_return=sum(finals) / len(finals) if finals else None,
@@ -134,14 +151,37 @@ def run(train_argv: list[str], threshold: float, run_dir: str, baseline: bool = 
       time_utc=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"))
 
 
+def device_driver(cfg) -> bool:
+  """Whether `train` runs `cfg` with the device driver (one device)."""
+  return cfg.renderer == "jax" and cfg.physics_device() is None
+
+
+def check_device_counts(text: str, cfg) -> list[int]:
+  """`--devices`' counts for the run `cfg`, sorted (`benchmarks.learner.device_counts`
+  with its K agents; only 1 with the device driver).
+
+  Raises:
+    ValueError: naming the valid counts.
+  """
+  import jax
+  from benchmarks import learner
+  from train import loop
+  counts = learner.device_counts(text, [len(cfg.agents())], jax.local_device_count())
+  for n in counts:
+    loop.check_train_devices(cfg, n)
+  return counts
+
+
 def markdown(rows: list[dict]) -> str:
   """The rows as one Markdown table."""
-  lines = ["| device | task | renderer | physics | agents × envs (groups) | steps | dtype "
-           "| quality "
+  lines = ["| device | task | renderer | physics | agents × envs (groups) | devices | steps "
+           "| dtype | quality "
            "| loop wall s | whole run s | transitions/s | steady transitions/s "
+           "| total steady transitions/s | scaling "
            "| learner alone updates/s | ratio | first ≥ threshold (step, s) | final return "
            "| UTC |",
-           "|---|---|---|---|---|---:|---|---|---:|---:|---:|---:|---:|---:|---|---:|---|"]
+           "|---|---|---|---|---|---:|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"
+           "---:|---|"]
   num = lambda v, f: "–" if v is None else format(v, f)
   for r in rows:
     hit = (f"≥ {r['threshold']:g}: {r['step_at_threshold']:,}, {r['time_to_threshold_s']:.0f} s"
@@ -150,17 +190,20 @@ def markdown(rows: list[dict]) -> str:
     quality = r["quality"] if r.get("renderer", "pool") == "pool" else "–"
     lines.append(f"| {r['device']} | {r['task']} | {r.get('renderer', 'pool')} | "
                  f"{r.get('physics', '–')} | {r['agents']} × {r['num_envs']} "
-                 f"({r.get('env_groups', 1)}) | "
+                 f"({r.get('env_groups', 1)}) | {r.get('devices', '–')} | "
                  f"{r['steps']:,} | {r['dtype']} | {quality} | {r['wall_s']:,.1f} | "
                  f"{r['process_s']:,.1f} | {r['transitions_per_s'] or 0:,.1f} | "
                  f"{num(r.get('steady_transitions_per_s'), ',.1f')} | "
+                 f"{num(r.get('total_transitions_per_s'), ',.1f')} | "
+                 f"{num(r.get('scaling_efficiency'), '.2f')} | "
                  f"{num(r.get('learner_updates_per_s'), ',.1f')} | "
                  f"{num(r.get('ratio'), '.2f')} | {hit} | {final} | {r['time_utc'][11:16]} |")
   return "\n".join(lines) + "\n"
 
 
 def main(argv=None) -> None:
-  """Command-line entry: one run, appended to --out, and the Markdown beside."""
+  """Command-line entry: one run per device count, appended to --out, and the
+  Markdown beside."""
   argv = sys.argv[1:] if argv is None else argv
   p = argparse.ArgumentParser(
       description=__doc__.splitlines()[0],
@@ -176,23 +219,42 @@ def main(argv=None) -> None:
   p.add_argument("--out", default=None, help="JSONL path (appended to); .md beside")
   p.add_argument("--no-baseline", action="store_true",
                  help="skip timing the learner alone (and the ratio)")
+  p.add_argument("--devices", default=None,
+                 help="comma-separated local device counts to shard the agents over, "
+                      "one run each (e.g. 1,2,4,8; each must divide the number of "
+                      "agents; default: one run on the devices train picks, all of them "
+                      "when they divide the agents)")
   a, train_argv = p.parse_known_args(argv)
   if "--resume" in train_argv:
     p.error("--resume is not timed here: start a new run")
   if a.run_dir and os.path.exists(os.path.join(a.run_dir, "checkpoints")):
     p.error(f"--run-dir {a.run_dir} already holds a run; give a new folder")
-  run_dir = a.run_dir or tempfile.mkdtemp(prefix="dmcr_train_bench_")
-  row = run(list(DEFAULT_TRAIN_ARGS) + train_argv, a.threshold, run_dir, not a.no_baseline)
-  print(json.dumps(row), flush=True)
-  rows = [row]
+  train_argv = list(DEFAULT_TRAIN_ARGS) + train_argv
+  counts = [None]
+  if a.devices is not None:
+    from train import __main__ as train_cli
+    cfg, _ = train_cli.parse(train_argv)  # creates nothing
+    try:
+      counts = check_device_counts(a.devices, cfg)
+    except ValueError as e:
+      p.error(f"--devices: {e}")
+  from benchmarks.learner import scaling_efficiency
+  several = len(counts) > 1
+  rows, one = [], None
+  for n in counts:  # ascending: the one-device run, if asked for, comes first
+    run_dir = (os.path.join(a.run_dir, f"devices-{n}") if a.run_dir and several
+               else a.run_dir or tempfile.mkdtemp(prefix="dmcr_train_bench_"))
+    row = run(train_argv, a.threshold, run_dir, not a.no_baseline, devices=n)
+    if several:
+      one = row["total_transitions_per_s"] if n == 1 else one
+      row["scaling_efficiency"] = scaling_efficiency(row["total_transitions_per_s"], one, n)
+    print(json.dumps(row), flush=True)
+    rows.append(row)
+    if a.out:
+      copy_outputs(run_dir, os.path.splitext(a.out)[0] + (f"_devices{n}" if several else ""))
+      with open(a.out, "a") as f:
+        f.write(json.dumps(row) + "\n")
   if a.out:
-    os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
-    stem = os.path.splitext(a.out)[0]
-    for name, suffix in (("log.csv", "_log.csv"), ("learning_curve.png", "_curve.png")):
-      if os.path.exists(os.path.join(run_dir, name)):
-        shutil.copyfile(os.path.join(run_dir, name), stem + suffix)
-    with open(a.out, "a") as f:
-      f.write(json.dumps(row) + "\n")
     with open(a.out) as f:
       rows = [json.loads(line) for line in f if line.strip()]
     with open(os.path.splitext(a.out)[0] + ".md", "w") as f:
@@ -200,6 +262,15 @@ def main(argv=None) -> None:
               f"`{os.path.basename(a.out)}`; the last run: `python -m benchmarks.training "
               f"{' '.join(argv)}` ({os.cpu_count()} cores).\n\n" + markdown(rows))
   print(markdown(rows))
+
+
+def copy_outputs(run_dir: str, stem: str) -> None:
+  """The run's log.csv and learning curve copied to `<stem>_log.csv` and
+  `<stem>_curve.png` (those that exist)."""
+  os.makedirs(os.path.dirname(os.path.abspath(stem)), exist_ok=True)
+  for name, suffix in (("log.csv", "_log.csv"), ("learning_curve.png", "_curve.png")):
+    if os.path.exists(os.path.join(run_dir, name)):
+      shutil.copyfile(os.path.join(run_dir, name), stem + suffix)
 
 
 if __name__ == "__main__":

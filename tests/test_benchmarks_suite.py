@@ -117,6 +117,8 @@ def test_normalise_baselines_and_ratios():
   learner = suite.normalise("learner", RAW["learner"])
   assert learner[0]["is_baseline"] and learner[1]["baseline_throughput"] == 100.0
   assert learner[1]["variant"] == "K=8 bfloat16 map" and learner[1]["ratio"] == 4.0
+  sharded = suite.normalise("learner", [dict(RAW["learner"][1], devices=2)])
+  assert sharded[0]["variant"] == "K=8 bfloat16 map on 2 devices"
 
 
 def test_normalise_drops_bad_rows_and_passes_normalised_ones(capsys):

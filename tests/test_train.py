@@ -245,7 +245,7 @@ def test_agents_sharded_over_two_devices_or_mapped_match_one_vmapped_call():
             learner, jnp.asarray(rng.integers(0, 255, (4, 16, 16, 9), np.uint8)),
             jnp.full((4,), t % 6 == 0), jnp.asarray(rng.uniform(-1, 1, (2, 2, 1)), jnp.float32),
             jnp.asarray(rng.uniform(0, 1, (4,)), jnp.float32), spec=spec)
-      mesh = loop._mesh(2)
+      mesh = loop.agent_mesh(2)
       assert mesh is not None
       copy = lambda t: jax.tree.map(lambda x: x.copy() if hasattr(x, "copy") else x, t)
       mapped_spec = dataclasses.replace(spec, agent_loop="map")
@@ -253,7 +253,7 @@ def test_agents_sharded_over_two_devices_or_mapped_match_one_vmapped_call():
       mapped = step.learn_jit(copy(learner), pairs=2, spec=mapped_spec)
       for a, b in zip(jax.tree.leaves(plain.agents.params), jax.tree.leaves(mapped.agents.params)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=2e-3)
-      put = lambda t: loop._put(t, mesh)
+      put = lambda t: loop.put_agents(t, mesh)
       sharded = step.learn_jit(copy(learner).replace(agents=put(learner.agents),
                                                      buffers=put(learner.buffers)),
                                pairs=2, spec=spec, mesh=mesh)

@@ -36,6 +36,13 @@ agent's envs drawing their looks from its own range). An agent's network init
 depends only on its seed, so augmentations and ranges are compared from the
 same start.
 
+Devices (host driver): the agent axis is sharded over the local devices with
+`shard_map` (each device updates and acts for K / D of the agents, their
+buffers on it), all D of them when K is a multiple of D, else one device
+(`mesh_devices`; `train(..., devices=D)` picks D). One process drives them all
+and renders every env in one render pool on the host. The device driver runs on
+one device.
+
 Steps: `steps` counts training steps per agent as the paper defines them (its
 Sec. 4: an action taken and its transition stored; one such step is
 `action_repeat` control steps), so with N envs an agent takes ⌈steps/N⌉ vector
@@ -333,16 +340,57 @@ def check_resume(saved: TrainConfig, cfg: TrainConfig) -> None:
 # Devices ----------------------------------------------------------------------------
 
 
-def _mesh(k: int):
-  """A mesh of the local devices over the agent axis, or None (one device, or
-  K not a multiple of the device count)."""
-  devices = jax.local_devices()
-  if len(devices) < 2 or k % len(devices):
+def valid_device_counts(k: int, available: int) -> list[int]:
+  """The local device counts K agents can be sharded over: 1, and every count up
+  to `available` that divides K (`shard_map` gives each device K / count agents)."""
+  return [n for n in range(1, available + 1) if n == 1 or k % n == 0]
+
+
+def check_devices(devices: int, k: int, available: int) -> None:
+  """Raises ValueError, naming the valid counts, unless K agents can be sharded
+  over `devices` of the `available` local devices (`valid_device_counts`)."""
+  valid = valid_device_counts(k, available)
+  if isinstance(devices, bool) or not isinstance(devices, (int, np.integer)) or devices < 1:
+    why = "not a positive device count"
+  elif devices in valid:
+    return
+  elif devices > available:
+    why = "more than the local devices"
+  else:
+    why = f"{k} agent{'s are' if k != 1 else ' is'} not a multiple of it"
+  raise ValueError(f"devices {devices!r}: {why} ({available} local device"
+                   f"{'s' if available != 1 else ''}); valid counts for {k} agent"
+                   f"{'s' if k != 1 else ''}: {', '.join(map(str, valid))}")
+
+
+def mesh_devices(k: int, devices: int | None = None, available: int | None = None) -> int:
+  """How many local devices `train` shards K agents over.
+
+  Args:
+    k: the number of agents.
+    devices: a count (checked with `check_devices`), or None: all `available`
+      devices when K is a multiple of their count, else one.
+    available: the local device count (None: `jax.local_device_count()`).
+  """
+  available = jax.local_device_count() if available is None else available
+  if devices is not None:
+    check_devices(devices, k, available)
+    return int(devices)
+  return available if k % available == 0 else 1
+
+
+def agent_mesh(k: int, devices: int | None = None):
+  """A mesh over the agent axis of the first `mesh_devices(k, devices)` local
+  devices, or None for one device (the arrays stay on the default device)."""
+  n = mesh_devices(k, devices)
+  if n < 2:
     return None
-  return jax.sharding.Mesh(np.array(devices), ("agents",))
+  return jax.sharding.Mesh(np.array(jax.local_devices()[:n]), ("agents",))
 
 
-def _put(tree, mesh):
+def put_agents(tree, mesh):
+  """`tree`'s arrays split along their leading (agent) axis over `mesh` (None: as
+  they are)."""
   if mesh is None:
     return tree
   return jax.device_put(tree, jax.sharding.NamedSharding(
@@ -718,8 +766,44 @@ def group_seed(seed: int, group: int) -> int:
   return int(np.random.SeedSequence([seed, group]).generate_state(1)[0])
 
 
-def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict:
+def check_train_devices(cfg: TrainConfig, devices: int | None) -> None:
+  """Raises ValueError, naming the valid counts, for a `devices` count `train`
+  cannot shard `cfg`'s agents over (`check_devices`), or for more than one device
+  with the device driver (renderer "jax", physics on the device: one device);
+  None passes."""
+  if devices is None:
+    return
+  k = len(cfg.agents())
+  check_devices(devices, k, jax.local_device_count())
+  if devices > 1 and cfg.renderer == "jax" and cfg.physics_device() is None:
+    raise ValueError(f"devices {devices}: the device driver (renderer 'jax' with the "
+                     "physics on the device) runs on one device; valid counts: 1 (or "
+                     "physics 'cpu', or the pool renderer, to shard the agents)")
+
+
+def one_device_note(k: int, available: int, devices: int | None, device_driver: bool
+                    ) -> str | None:
+  """Why a run on a host with several local devices uses only one (None when it
+  uses them all, was asked for its count, or there is one device)."""
+  if available < 2 or devices is not None:
+    return None
+  if device_driver:
+    return (f"training on one of the {available} local devices: the device driver "
+            "(renderer 'jax', physics on the device) runs on one")
+  if k % available:
+    return (f"training on one of the {available} local devices: the {k} agents are not "
+            f"a multiple of {available} (shard them with a multiple of {available} agents, "
+            "or limit the visible devices, e.g. CUDA_VISIBLE_DEVICES)")
+  return None
+
+
+def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
+          devices: int | None = None) -> dict:
   """Trains `len(cfg.agents())` agents; returns a summary (also written as JSON).
+
+  The agent axis is sharded over `mesh_devices(K, devices)` local devices
+  (`devices` None: all of them when K is a multiple of their count, else one;
+  the device driver below always runs on one).
 
   Writes `<out_dir>/config.json`, `<out_dir>/log.csv` (one row per finished
   episode: step, agent, seed, augmentation, return, wall time, transitions/s and
@@ -732,13 +816,18 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
   outputs).
 
   Raises:
-    ValueError: a bad config (before anything is built).
+    ValueError: a bad config or device count (before anything is built).
     FileExistsError: `out_dir` already holds checkpoints and `resume` is False.
     FileNotFoundError: `resume` and no checkpoint.
   """
   check_config(cfg)
   physics_device = cfg.physics_device()
-  if cfg.renderer == "jax" and physics_device is None:
+  device_driver = cfg.renderer == "jax" and physics_device is None
+  check_train_devices(cfg, devices)
+  note = one_device_note(len(cfg.agents()), jax.local_device_count(), devices, device_driver)
+  if note:
+    print(f"{cfg.task}: {note}", file=sys.stderr, flush=True)
+  if device_driver:
     from train import device_loop
     return device_loop.train(cfg, resume=resume, progress=progress)
   manager = open_run(cfg, resume)
@@ -749,14 +838,14 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
     envs = [stack.enter_context(make_env(cfg, n, physics_device=physics_device, **extra))
             for _ in range(groups)]
     obs_shape = envs[0].single_observation_space.shape
-    mesh = _mesh(k)
+    mesh = agent_mesh(k, devices)
     on_cpu = jax.default_backend() == "cpu"
     spec = step_spec(cfg, envs[0])
     agents, buffers, key, start = initial_state(cfg, manager, resume, obs_shape,
                                                 envs[0].task.action_size)
-    learner = train_step.init_learner(_put(agents, mesh), _put(buffers, mesh), key, start,
-                                      spec)
-    put = lambda x: _put(jnp.asarray(x), mesh)
+    learner = train_step.init_learner(put_agents(agents, mesh), put_agents(buffers, mesh),
+                                      key, start, spec)
+    put = lambda x: put_agents(jnp.asarray(x), mesh)
     physics_first = physics_device is None or on_cpu
 
     def learn(learner, owed, ready, step):

@@ -269,7 +269,9 @@ def metric_names(agents: sac.AgentState, buffers: replay.ReplayBuffer,
                  config: sac.SACConfig) -> tuple[str, ...]:
   """The names of `update_pair`'s metrics for these (K-stacked) agents (traced
   abstractly: nothing is computed)."""
-  one = lambda tree: jax.tree.map(lambda x: x[0], tree)
+  # One agent's shapes, not its slices: slicing agents sharded over several
+  # devices would run a gather across them.
+  one = lambda tree: jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), tree)
   shapes = jax.eval_shape(lambda a, b, kk: update_pair(a, b, kk, config)[1],
                           one(agents), one(buffers), jax.random.key(0))
   return tuple(sorted(shapes))
