@@ -131,7 +131,7 @@ def full_size_commands(task: str) -> list[str]:
   """The commands of the paper-sized run of `task` (a GPU machine)."""
   run = f"runs/{task}-drq"
   return [f"dmcr-train --task {task} --steps 50000 --num-envs 16 --dtype bfloat16 --out {run}",
-          f"evaluate {run}",
+          f"dmcr-evaluate {run}",
           f"dmcr-train --task {task} --visual-seeds levels:10 --num-envs 16 --dtype bfloat16 "
           f"--out {run}-levels10   # few-shot looks, as this demo"]
 
