@@ -111,7 +111,7 @@ def run(train_argv: list[str], threshold: float, run_dir: str, baseline: bool = 
   from train import loop
 
   cfg, _ = train_cli.parse(list(train_argv) + ["--out", run_dir])
-  used = 1 if device_driver(cfg) else loop.mesh_devices(len(cfg.agents()), devices)
+  used = 1 if cfg.device_driver() else loop.mesh_devices(len(cfg.agents()), devices)
   alone = learner_alone(cfg, devices=used) if baseline else None
   if alone:
     print(f"learner alone: {alone['updates_per_s_per_agent']:.1f} updates/s per agent",
@@ -149,11 +149,6 @@ def run(train_argv: list[str], threshold: float, run_dir: str, baseline: bool = 
       steady=summary.get("steady"),
       train_args=list(train_argv), run_dir=run_dir,
       time_utc=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"))
-
-
-def device_driver(cfg) -> bool:
-  """Whether `train` runs `cfg` with the device driver (one device)."""
-  return cfg.renderer == "jax" and cfg.physics_device() is None
 
 
 def check_device_counts(text: str, cfg) -> list[int]:

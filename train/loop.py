@@ -180,6 +180,12 @@ class TrainConfig:
       return "cpu"
     return None
 
+  def device_driver(self) -> bool:
+    """Whether `train` runs this config with the device driver
+    (`train.device_loop`: the JAX renderer with the physics on the learner's
+    device; one device, no env groups) rather than the host loop."""
+    return self.renderer == "jax" and self.physics_device() is None
+
   def agents(self) -> list[tuple[int, str]]:
     """(seed, augmentation) of each agent, in the order of the agent axis (look
     groups outermost, then augmentations, then seeds; `agent_looks`)."""
@@ -310,7 +316,7 @@ def check_config(cfg: TrainConfig) -> None:
   if cfg.num_envs % groups:
     raise ValueError(f"env_groups ({groups}) must divide num_envs ({cfg.num_envs}): each "
                      "group steps num_envs / env_groups envs per agent")
-  if groups > 1 and cfg.renderer == "jax" and cfg.physics_device() is None:
+  if groups > 1 and cfg.device_driver():
     raise ValueError("env_groups > 1 needs the host driver: the pool renderer, or "
                      "--renderer jax with the physics on the host CPU (physics 'cpu')")
   if cfg.agent_loop is not None and cfg.agent_loop not in AGENT_LOOPS:
@@ -775,7 +781,7 @@ def check_train_devices(cfg: TrainConfig, devices: int | None) -> None:
     return
   k = len(cfg.agents())
   check_devices(devices, k, jax.local_device_count())
-  if devices > 1 and cfg.renderer == "jax" and cfg.physics_device() is None:
+  if devices > 1 and cfg.device_driver():
     raise ValueError(f"devices {devices}: the device driver (renderer 'jax' with the "
                      "physics on the device) runs on one device; valid counts: 1 (or "
                      "physics 'cpu', or the pool renderer, to shard the agents)")
@@ -822,12 +828,12 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
   """
   check_config(cfg)
   physics_device = cfg.physics_device()
-  device_driver = cfg.renderer == "jax" and physics_device is None
   check_train_devices(cfg, devices)
-  note = one_device_note(len(cfg.agents()), jax.local_device_count(), devices, device_driver)
+  note = one_device_note(len(cfg.agents()), jax.local_device_count(), devices,
+                         cfg.device_driver())
   if note:
     print(f"{cfg.task}: {note}", file=sys.stderr, flush=True)
-  if device_driver:
+  if cfg.device_driver():
     from train import device_loop
     return device_loop.train(cfg, resume=resume, progress=progress)
   manager = open_run(cfg, resume)
