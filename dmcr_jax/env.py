@@ -591,14 +591,16 @@ class JaxPixelVectorEnv(_PixelEnvBase):
 
   def _finish_step(self, t0, resetting, es, reward, truncated):
     """The step's frames and stacks: with the physics on the render device, the
-    fused call `_step` already made them; else the physics moves to the render
-    device and `jax_env.observe` renders there. Then the transfer to the host."""
+    fused call `_step` already made them; else what the frames read of the
+    physics (`render_inputs`) moves to the render device and
+    `jax_env.observe_inputs` renders there. Then the transfer to the host."""
     if isinstance(es, jax_env.PixelState):
       ps, es = es, None
     else:
-      physics = jax.device_put(es, self._render_on)
-      ps = jax_env.observe(self.functional, self._ps, physics,
-                           jax.device_put(resetting, self._render_on))
+      inputs = jax.device_put(
+          jax_env.render_inputs(es, self.functional.drawn_variables), self._render_on)
+      ps = jax_env.observe_inputs(self.functional, self._ps.replace(physics=None), inputs,
+                                  jax.device_put(resetting, self._render_on))
     jax.block_until_ready(ps)
     t1 = time.perf_counter()
     obs, host = self._adopt(ps, reward, truncated, es=es)
@@ -608,7 +610,9 @@ class JaxPixelVectorEnv(_PixelEnvBase):
 
   @property
   def pixel_state(self) -> jax_env.PixelState | None:
-    """The current `jax_env.PixelState` (None before reset)."""
+    """The current `jax_env.PixelState` (None before reset; with the physics on
+    another device than the frames, its `physics` is None after a step: see
+    `state` for the physics)."""
     return self._ps
 
   def _use_seeds(self) -> None:

@@ -13,6 +13,10 @@ the table of looks the visual seeds select, and static sizes) offers
 * `env.observe(state, physics, resetting) -> PixelState` — the render half of
   `step` alone: the frames and stacks of a stepped physics state (for physics
   stepped elsewhere, e.g. on the host CPU);
+* `env.observe_inputs(state, inputs, resetting) -> PixelState` — the same from
+  `env.render_inputs(physics)`, the few arrays the frames read (body poses, task
+  model variables, visual seeds): what a physics stepped on another device
+  needs to move to this one;
 * `env.start(physics, look) -> PixelState` — fresh stacks for a given physics
   state (reset and `set_state` use it).
 
@@ -77,6 +81,34 @@ class PixelState:
 
 
 @struct.dataclass
+class RenderInputs:
+  """What the frames of N envs read of their physics (`PixelEnv.render_inputs`).
+
+  Attributes:
+    poses: the bodies' `BodyPoses` (positions, rotations, subtree centres of mass).
+    variables: the task's model variables the scene draws (e.g. a target's
+      position), name → (N, …) array, or None when it draws none.
+    visual_seed: int32 (N,), each env's visual seed (drawn seeds pick looks).
+  """
+  poses: JS.BodyPoses
+  variables: dict | None
+  visual_seed: jax.Array
+
+
+def physics_render_inputs(physics: physics_env.EnvState, variables: tuple[str, ...]
+                          ) -> RenderInputs:
+  """The `RenderInputs` of `physics`, with the named task model variables.
+
+  Reads nothing of a `PixelEnv`, so it runs where `physics` is (e.g. the host
+  CPU) and only its result moves to the render device.
+  """
+  info = physics.task.info
+  return RenderInputs(poses=JS.poses(physics.task.data),
+                      variables={k: info[k] for k in variables} or None,
+                      visual_seed=physics.visual_seed)
+
+
+@struct.dataclass
 class PixelEnv:
   """N envs of one task, rendered by the JAX ray caster (build with `make_env`).
 
@@ -126,15 +158,26 @@ class PixelEnv:
       return self.looks
     return self.maker(visual_seed)
 
-  def render(self, physics: physics_env.EnvState, look: JS.DeviceLook) -> jax.Array:
-    """One frame per env, uint8 (N, H, W, 3), of the physics state under `look`."""
-    info = physics.task.info
+  @property
+  def drawn_variables(self) -> tuple[str, ...]:
+    """The task's model variables the scene draws (static)."""
     keys = {k for k, _, _ in self.scene.variables}
-    variables = {k: info[k] for k in self.task.model_variable_ids if k in keys}
-    return JR.render_batch(self.scene, JS.poses(physics.task.data), look, variables or None,
+    return tuple(k for k in self.task.model_variable_ids if k in keys)
+
+  def render_inputs(self, physics: physics_env.EnvState) -> RenderInputs:
+    """The arrays of `physics` that its frames depend on (`physics_render_inputs`)."""
+    return physics_render_inputs(physics, self.drawn_variables)
+
+  def draw(self, inputs: RenderInputs, look: JS.DeviceLook) -> jax.Array:
+    """One frame per env, uint8 (N, H, W, 3), of `render_inputs` under `look`."""
+    return JR.render_batch(self.scene, inputs.poses, look, inputs.variables,
                            chunk=self.render_chunk, kernel=self.render_kernel,
                            height=self.height, width=self.width,
                            shadows=self.shadows, reflection=self.reflection)
+
+  def render(self, physics: physics_env.EnvState, look: JS.DeviceLook) -> jax.Array:
+    """One frame per env, uint8 (N, H, W, 3), of the physics state under `look`."""
+    return self.draw(self.render_inputs(physics), look)
 
   def start(self, physics: physics_env.EnvState, look: JS.DeviceLook) -> PixelState:
     """Fresh frame stacks (the first frame repeated) for a physics state.
@@ -194,6 +237,21 @@ class PixelEnv:
     Returns:
       The next `PixelState`.
     """
+    return self.observe_inputs(state, self.render_inputs(physics),
+                               resetting).replace(physics=physics)
+
+  def observe_inputs(self, state: PixelState, inputs: RenderInputs,
+                     resetting: jax.Array) -> PixelState:
+    """`observe` from the stepped physics' `render_inputs` alone.
+
+    Args:
+      state: the `PixelState` before the step (its `physics` is not read).
+      inputs: `render_inputs` of the `EnvState` after the step.
+      resetting: as for `observe`.
+
+    Returns:
+      The next `PixelState`, with `physics` None (the physics lives elsewhere).
+    """
     look = state.look
     if self.seed_range is not None:     # fixed seeds keep their look across resets
       pick = lambda new, old: jnp.where(
@@ -201,13 +259,13 @@ class PixelEnv:
       # New looks are made only in steps where some env resets (rare).
       look = jax.lax.cond(
           jnp.any(resetting),
-          lambda: jax.tree.map(pick, self.looks_of(physics.visual_seed), look),
+          lambda: jax.tree.map(pick, self.looks_of(inputs.visual_seed), look),
           lambda: look)
-    frame = self.render(physics, look)
+    frame = self.draw(inputs, look)
     shifted = jnp.concatenate([state.obs[..., 3:], frame], axis=-1)
     obs = jnp.where(resetting[:, None, None, None],
                     jnp.tile(frame, (1, 1, 1, self.frame_stack)), shifted)
-    return PixelState(physics=physics, look=look, obs=obs)
+    return PixelState(physics=None, look=look, obs=obs)
 
 
 def host_looks(scene: JS.Scene, rm: rmod.RenderModel, seeds, vary) -> JS.DeviceLook:
@@ -294,5 +352,9 @@ reset = jax.jit(lambda env, key: env.reset(key))
 start = jax.jit(lambda env, physics, look: env.start(physics, look))
 step = jax.jit(lambda env, state, actions: env.step(state, actions))
 observe = jax.jit(lambda env, state, physics, resetting: env.observe(state, physics, resetting))
+render_inputs = jax.jit(physics_render_inputs, static_argnums=(1,))
+"""`physics_render_inputs`, jitted (on the physics' device)."""
+observe_inputs = jax.jit(lambda env, state, inputs, resetting:
+                         env.observe_inputs(state, inputs, resetting))
 step_donated = jax.jit(lambda env, state, actions: env.step(state, actions),
                        donate_argnums=(1,))

@@ -143,6 +143,25 @@ def test_same_seed_same_pixels_and_one_compilation(rollouts, envs, actions):
   assert jax_env.step._cache_size() == 1       # every step reused one compilation
 
 
+def test_render_inputs_alone_draw_what_the_whole_physics_draws(envs, actions):
+  # What the env moves to the render device when the physics runs on another
+  # (`render_inputs`) gives the fused step's frames, stacks and looks, also for
+  # envs that reset (a new look drawn from the range).
+  jenv = envs[0]
+  jenv.reset(seed=5)
+  env, state = jenv.functional, jenv.pixel_state
+  after = jax_env.step(env, state, np.asarray(actions[0]))[0]
+  inputs = jax_env.render_inputs(after.physics, env.drawn_variables)
+  for resetting in (state.physics.needs_reset, np.array([True, False])):
+    want = jax_env.observe(env, state, after.physics, resetting)
+    got = jax_env.observe_inputs(env, state.replace(physics=None), inputs, resetting)
+    assert got.physics is None
+    np.testing.assert_array_equal(np.asarray(got.obs), np.asarray(want.obs))
+    for a, b in zip(jax.tree.leaves(got.look), jax.tree.leaves(want.look)):
+      np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+  np.testing.assert_array_equal(np.asarray(want.obs[1]), np.asarray(after.obs[1]))
+
+
 def test_set_state_restarts_the_stacks_from_that_state(envs):
   jenv = envs[0]
   jenv.reset(seed=5)
