@@ -863,6 +863,15 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
       return learner, owed, ready
 
     log = RunLog(cfg, start, resume, progress)
+
+    def settled(learning, current):
+      """`learn`'s (learner, owed, ready) once the launch of the updates in flight
+      is done (timed as "learn"), or `current` when none are in flight."""
+      if learning is None:
+        return current
+      with log.timed("learn"):
+        return learning.result()
+
     env_seconds = lambda: {part: sum(env.timings[part] for env in envs)
                            for part in envs[0].timing_parts}
     owed, ready = np.float32(0), False
@@ -880,9 +889,8 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
       while True:
         acting = acted < cfg.steps and not log.stopped
         if acting:  # group g acts and steps; the updates owed run meanwhile
-          if learning is not None:  # (env groups: no group was stored since)
-            with log.timed("learn"):
-              (learner, owed, ready), learning = learning.result(), None
+          # (env groups: updates still in flight if no group was stored since)
+          (learner, owed, ready), learning = settled(learning, (learner, owed, ready)), None
           with log.timed("act"):  # includes waiting for the updates queued before
             o, f = put(obs[g]), put(first[g])
             learner, action, env_action = train_step.act_jit(learner, o, spec=spec,
@@ -907,9 +915,8 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
           with log.timed("env_step_wait"):
             next_obs, reward, _, truncated, info = envs[g].step_wait()
           o, f, action = in_flight.pop(g)
-          if learning is not None:
-            with log.timed("learn"):  # waits until the updates are launched
-              (learner, owed, ready), learning = learning.result(), None
+          # The updates must be launched: they read the buffers `store` writes.
+          (learner, owed, ready), learning = settled(learning, (learner, owed, ready)), None
           with log.timed("store"):
             learner = train_step.store_jit(learner, o, f, action, put(reward), spec=spec,
                                            mesh=mesh, group=g)
