@@ -71,7 +71,7 @@ class PixelState:
   Attributes:
     physics: the `physics_env.EnvState` (task states, visual seeds, keys,
       `needs_reset`, and the episode counters `episode`, `episode_step`,
-      `episode_return`).
+      `episode_return`), or None after `observe_inputs` (physics kept elsewhere).
     look: the `DeviceLook` of every env's current episode.
     obs: uint8 (N, H, W, 3·frame_stack) frame stacks, oldest frame first.
   """
