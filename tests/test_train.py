@@ -148,6 +148,7 @@ def test_interrupted_run_resumes_where_it_stopped(tmp_path):
 
   cfg = loop.TrainConfig(steps=stopped + 15, checkpoint_every=0, out_dir=out, seeds=(0, 1),
                          **{k: v for k, v in CFG.items()})
+  updates_at_stop = np.asarray(loop.load_run(out)[1].step)
   summary = loop.train(cfg, resume=True, progress=False)
   assert summary["steps"] == stopped + 15 and not summary["interrupted"]
   assert max(int(d) for d in os.listdir(ckpt) if d.isdigit()) == stopped + 15
@@ -158,6 +159,9 @@ def test_interrupted_run_resumes_where_it_stopped(tmp_path):
   restored_cfg, agents, step = loop.load_run(out)
   assert step == stopped + 15 and restored_cfg == cfg
   assert agents.step.shape == (2,) and int(agents.step[0]) > 0
+  # The buffers refilled for warmup_steps transitions (no updates), then one
+  # update per transition: 15 − 5 = 10 updates, in pairs.
+  np.testing.assert_array_equal(np.asarray(agents.step) - updates_at_stop, [10, 10])
   with pytest.raises(FileExistsError, match="--resume"):
     loop.train(cfg, progress=False)  # a new run would overwrite this one
   with pytest.raises(FileNotFoundError, match="no run in"):
@@ -168,6 +172,30 @@ def test_interrupted_run_resumes_where_it_stopped(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("start", [0, 40])
+def test_no_update_is_owed_until_the_buffers_refill(start):
+  # A fresh run (start 0) owes nothing during its warm-up; a resumed one (start
+  # 40: its buffers were not checkpointed) owes nothing for a warm-up's worth of
+  # transitions after its start, then `utd` per transition in pairs, as the fresh
+  # run after its warm-up. Both drivers' bookkeeping (NumPy and traced).
+  from train import step as train_step
+  spec = train_step.StepSpec(agents=1, num_envs=4, warmup_steps=10, utd=1.0, sac=TINY,
+                             agent_loop="vmap", low=(-1.0,), high=(1.0,))
+  first = loop.updates_from(loop.TrainConfig(warmup_steps=10), start)
+  assert first == start + 10
+  for xp in (np, jnp):
+    owed, ready, pairs_run = np.float32(0), False, []
+    for step in range(start, start + 40, 4):
+      owed, ready, pairs = train_step.plan_updates(
+          owed, ready, step, lambda: True, spec, xp,
+          first if xp is np else jnp.int32(first))
+      ready = bool(ready)
+      pairs_run.append(int(pairs))
+    # Transitions start+4 … start+40 in steps of 4; the one ending past start+10
+    # owes 2 (the part past the refill), every later one 4: 2 pairs each.
+    assert pairs_run == [0, 0, 1, 2, 2, 2, 2, 2, 2, 2]
+
+
 def test_host_and_device_drivers_train_identical_agents(tmp_path):
   # One training step, two drivers: fed the same frames (the ray caster's), the
   # host driver (jitted act/learn/store around the env) and the device driver

@@ -48,11 +48,15 @@ class Carry:
     env: the `jax_env.PixelState` of the K·N envs (agent k acts in envs k·N …).
     owed: float32 updates owed and not yet run.
     ready: bool, every buffer could be sampled at some step.
+    updates_from: int32, transitions per agent before which no update is owed
+      (`train.loop.updates_from`; traced, so fresh and resumed runs share one
+      compilation).
   """
   learner: train_step.Learner
   env: jax_env.PixelState
   owed: jax.Array
   ready: jax.Array
+  updates_from: jax.Array
 
 
 def vector_step(penv: jax_env.PixelEnv, c: Carry, spec: train_step.StepSpec):
@@ -60,14 +64,15 @@ def vector_step(penv: jax_env.PixelEnv, c: Carry, spec: train_step.StepSpec):
   learner, action, env_action = train_step.act(c.learner, c.env.obs, spec)
   owed, ready, pairs = train_step.plan_updates(
       c.owed, c.ready, c.learner.step, lambda: train_step.can_sample(learner.buffers), spec,
-      jnp)
+      jnp, c.updates_from)
   learner = train_step.learn(learner, pairs, spec)
   first = c.env.physics.episode_step == 0
   env, reward, truncated = penv.step(c.env, env_action)
   learner = train_step.store(learner, c.env.obs, first, action, reward, spec)
   out = dict(step=learner.step, truncated=truncated,
              episode_return=env.physics.episode_return, metrics=learner.metrics)
-  return Carry(learner=learner, env=env, owed=owed, ready=ready), out
+  return Carry(learner=learner, env=env, owed=owed, ready=ready,
+               updates_from=c.updates_from), out
 
 
 def _chunk(penv: jax_env.PixelEnv, carry: Carry, spec: train_step.StepSpec, length: int):
@@ -92,7 +97,8 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict
   env.reset(seed=int(cfg.seeds[0]) + start)
   carry = Carry(learner=train_step.init_learner(agents, buffers, key, start, spec),
                 env=env.pixel_state, owed=jnp.zeros((), jnp.float32),
-                ready=jnp.zeros((), bool))
+                ready=jnp.zeros((), bool),
+                updates_from=jnp.asarray(loop.updates_from(cfg, start), jnp.int32))
   # Committed to one device, as restored checkpoints are: fresh and resumed runs
   # then share one compilation (committed and uncommitted inputs do not).
   carry = jax.device_put(carry, jax.devices()[0])

@@ -63,7 +63,8 @@ states, α, update count), the step counter and the RNG key, every
 `checkpoint_every` steps and when SIGINT/SIGTERM arrives. `resume` restores
 exactly those; the replay buffers are NOT saved (100,000 frames are 2.1 GB per
 agent): a resumed run starts new episodes and refills its buffers with the
-restored policy, and updates wait until each buffer can be sampled again.
+restored policy, `warmup_steps` transitions per agent in which no update is
+owed (`updates_from`), then updates at `utd` per transition again.
 """
 
 from __future__ import annotations
@@ -733,6 +734,14 @@ def crossed(every: int, before: int, step: int) -> bool:
   return bool(every) and step // every != before // every
 
 
+def updates_from(cfg: TrainConfig, start: int) -> int:
+  """Transitions per agent before which no update is owed, for a run starting at
+  transition `start` (0, or a resumed run's step): `warmup_steps` past it, in
+  which a fresh run acts at random and a resumed one refills its buffers (not
+  checkpointed) with its restored policy."""
+  return int(start) + int(cfg.warmup_steps)
+
+
 def step_spec(cfg: TrainConfig, env) -> train_step.StepSpec:
   """The `train.step.StepSpec` of a run on `env` (its action bounds)."""
   on_cpu = jax.default_backend() == "cpu"
@@ -857,7 +866,8 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
     def learn(learner, owed, ready, step):
       """`train.step.learn` with the pairs planned at `step` (host counters)."""
       owed, ready, pairs = train_step.plan_updates(
-          owed, ready, step, lambda: train_step.can_sample_jit(learner.buffers), spec)
+          owed, ready, step, lambda: train_step.can_sample_jit(learner.buffers), spec,
+          updates_from=updates_from(cfg, start))
       learner = train_step.learn_jit(learner, pairs=int(pairs), spec=spec, mesh=mesh,
                                      unroll=on_cpu)
       return learner, owed, ready

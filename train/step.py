@@ -7,7 +7,8 @@ this order:
    agents' step count is below the warm-up (Table 6: 1,000 transitions), else
    samples of each agent's policy (`sac.act`);
 2. `learn`: the gradient updates owed for the N transitions this step collects
-   (`owed_updates`: `utd` per transition, none during the warm-up, run in pairs:
+   (`owed_updates`: `utd` per transition, none during the warm-up or a resumed
+   run's refill, run in pairs:
    a critic-only update, then a full one), sampling the buffers as they are
    before this step's transitions (the DrQ, CURL and SAC-AE order: update, then
    env step); they wait, and accumulate, until every buffer can be sampled;
@@ -157,7 +158,7 @@ def act(learner: Learner, obs: jax.Array, spec: StepSpec, mesh=None):
   return learner.replace(key=key, step=learner.step + n), action, env_action
 
 
-def owed_updates(owed, step, spec: StepSpec, xp=np):
+def owed_updates(owed, step, spec: StepSpec, xp=np, updates_from=None):
   """Updates owed once the N / G transitions of the step at `step` are collected.
 
   Args:
@@ -165,17 +166,22 @@ def owed_updates(owed, step, spec: StepSpec, xp=np):
     step: transitions per agent acted on before this step.
     spec: the `StepSpec` (N / G, warm-up, utd).
     xp: `numpy` (a host driver's counters) or `jax.numpy` (traced).
+    updates_from: transitions per agent before which no update is owed (None:
+      `spec.warmup_steps`). A resumed run passes its first step plus the
+      warm-up: its buffers, which checkpoints do not hold, refill first.
 
   Returns:
     (owed including this step's, update pairs that can run now: ⌊owed / 2⌋).
   """
+  start = spec.warmup_steps if updates_from is None else updates_from
   after = step + spec.step_envs
-  new = spec.utd * (after - xp.maximum(step, spec.warmup_steps))
-  owed = xp.where(after > spec.warmup_steps, owed + xp.float32(new), owed)
+  new = spec.utd * (after - xp.maximum(step, start))
+  owed = xp.where(after > start, owed + xp.float32(new), owed)
   return xp.float32(owed), xp.floor(owed / 2).astype(xp.int32)
 
 
-def plan_updates(owed, ready, step, can_sample_now, spec: StepSpec, xp=np):
+def plan_updates(owed, ready, step, can_sample_now, spec: StepSpec, xp=np,
+                 updates_from=None):
   """Which updates run at the step at `step` (both drivers' bookkeeping).
 
   Args:
@@ -187,13 +193,15 @@ def plan_updates(owed, ready, step, can_sample_now, spec: StepSpec, xp=np):
     spec: the `StepSpec`.
     xp: `numpy` (host counters: `can_sample_now` returns a Python bool) or
       `jax.numpy` (traced: it returns a traced bool, asked under `lax.cond`).
+    updates_from: as for `owed_updates` (a Python int or a traced int32).
 
   Returns:
     (owed after this step's updates, ready, update pairs to run now: 0 until
     learning starts and the buffers can be sampled; owed updates wait till then).
   """
-  owed, pairs = owed_updates(owed, step, spec, xp)
-  learning = step + spec.step_envs > spec.warmup_steps
+  owed, pairs = owed_updates(owed, step, spec, xp, updates_from)
+  start = spec.warmup_steps if updates_from is None else updates_from
+  learning = step + spec.step_envs > start
   if xp is np:
     ready = ready or (learning and bool(can_sample_now()))
   else:
