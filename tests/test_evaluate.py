@@ -205,6 +205,26 @@ def _summary(augs, seeds=(0, 1), task="cartpole-balance"):
   return summary
 
 
+def test_agents_of_different_training_look_ranges_are_not_averaged_together(tmp_path):
+  # A few-shot run (one agent per range and seed): the summary's groups, the tables'
+  # mean rows and the chart keep each range apart; the paper's row appears once.
+  summary = _summary(("drq",))
+  for r, look in zip(summary["agents"], ("levels:1", "levels:10")):
+    r["train_look"] = look
+  groups = ev.aug_groups(summary)
+  assert [g["label"] for g in groups] == ["drq, levels:1", "drq, levels:10"]
+  assert [g["agents"] for g in groups] == [[0], [1]]
+  assert groups[1]["train"] == pytest.approx(200.0)
+  summary["augs"] = groups
+  table = ev.markdown(summary)
+  assert "**mean**" not in table and table.count("| paper, SAC+AUG |") == 2  # both tables
+  e_g_rows = table.split("| augmentation | train |")[1].strip().splitlines()[2:]
+  assert [r.split(" | ")[0] for r in e_g_rows] == [
+      "| drq, levels:1", "| drq, levels:10", "| paper, SAC+AUG"]
+  ev.plot(summary, str(tmp_path / "eval.png"))
+  assert os.path.getsize(tmp_path / "eval.png") > 0
+
+
 def test_several_augmentations_are_compared_side_by_side_with_the_papers_rows(tmp_path):
   mine = "examples.augmentations:hue_rotation+drq"
   summary = _summary(("drq", "cj+drq", mine))

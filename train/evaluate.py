@@ -25,7 +25,8 @@ Sec. 3). Outputs: a JSON file, a Markdown table laid out like the paper's Table 
 chart. A run that trained several augmentations (``dmcr-train --aug drq,cj+drq,mine+drq``)
 is compared side by side: per augmentation the mean over its seeds, each
 condition's return and E_G, beside the paper's rows (``"augs"`` in the JSON; one
-row per augmentation in both tables; grouped bars in the chart).
+row per augmentation in both tables, per augmentation and training-look range in
+a few-shot run; grouped bars in the chart).
 
 Few-shot runs (`dmcr-train --visual-seeds levels:1,10,…`, one agent per training-look
 range): every agent meets the same held-out test looks; an agent's "train" return
@@ -325,7 +326,10 @@ def _label(row: dict) -> str:
 
 
 def aug_groups(summary: dict) -> list[dict]:
-  """The agents grouped by augmentation (by algorithm and augmentation), in run order.
+  """The agents grouped by augmentation (by algorithm and augmentation), in run order;
+  in a run with several training-look ranges, by augmentation and range (a mean
+  over agents trained on different looks would mix what the few-shot curve
+  separates).
 
   Args:
     summary: `evaluate`'s results (its "agents", "conditions" and "task").
@@ -338,9 +342,10 @@ def aug_groups(summary: dict) -> list[dict]:
     column taken as the train return), or None.
   """
   conditions = summary["conditions"]
+  ranges = len({r.get("train_look") for r in summary["agents"]}) > 1
   groups: dict[str, list[dict]] = {}
   for r in summary["agents"]:
-    groups.setdefault(_label(r), []).append(r)
+    groups.setdefault(_label(r) + (f", {r['train_look']}" if ranges else ""), []).append(r)
   out = []
   for label, rows in groups.items():
     method = rows[0].get("method")
@@ -404,13 +409,14 @@ def markdown(summary: dict) -> str:
     for g in groups:
       lines.append(line(f"**{g['label']}** (mean of {len(g['agents'])})", g["train"],
                         g["conditions"], g["e_g"][last]))
-  papers = [g for g in groups if g["paper"] is not None]
+  papers = list({g["method"]: g for g in groups if g["paper"] is not None}.values())
   lines += [paper_line(g) for g in papers]
   if papers:
     lines += ["", "Paper rows are its Table 4 (five runs; its \"None\" column, shown "
                   "under both train and none)."]
   lines += ["", "E_G per condition (mean return of each "
-            + ("augmentation's agents" if len(groups) > 1 else "agent set")
+            + ("augmentation's agents per training-look range" if ranges
+               else "augmentation's agents" if len(groups) > 1 else "agent set")
             + "; paper: from its Table 4 with \"None\" as train):", "",
             "| " + " | ".join(["augmentation", "train"] + conditions) + " |",
             "|---|" + "---:|" * (len(conditions) + 1)]
@@ -440,6 +446,7 @@ def plot(summary: dict, png_path: str) -> None:
   fig, (ax, ax_e) = plt.subplots(1, 2, figsize=(2.0 + 1.5 * len(columns), 3.8),
                                  gridspec_kw=dict(width_ratios=(len(columns),
                                                                 len(conditions))))
+  drawn_papers = set()
   for k, g in enumerate(groups):
     color, dx = colors[k % len(colors)], (k - (len(groups) - 1) / 2) * width
     means = [g["train"]] + [g["conditions"][c] for c in conditions]
@@ -451,7 +458,8 @@ def plot(summary: dict, png_path: str) -> None:
               "k.", ms=4, alpha=0.6, ls="none")
     ax_e.bar(np.arange(len(conditions)) + dx, [g["e_g"][c] for c in conditions], width,
              color=color, alpha=0.8)
-    if g["paper"] is not None:
+    if g["paper"] is not None and g["method"] not in drawn_papers:
+      drawn_papers.add(g["method"])
       row = g["paper"]["returns"]
       ax.plot(np.array([i for i, c in enumerate(columns) if c in row or c == "train"]) + dx,
               [row["none"] if c == "train" else row[c] for c in columns
