@@ -11,7 +11,7 @@ status, exit code and wall time). Runs into an existing ``--out`` folder replace
 jobs run again and keep the others, so a sweep can be run in parts.
 
     python -m benchmarks --quick --out /tmp/suite_quick   # tiny sizes: minutes on 2 cores
-    python -m benchmarks --only physics,env-exact --out benchmarks/results/suite-h100-2026-11-24
+    python -m benchmarks --only physics,env-exact --out /tmp/suite        # some jobs
     python -m benchmarks --dry-run                        # print the commands of the plan
 """
 
