@@ -21,40 +21,14 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
 import os
-import re
 import time
 
 import jax
 import numpy as np
 
+from benchmarks import rows as R
 from dmcr_jax import augment
-
-
-def device_slug(device) -> str:
-  """A short file-name tag for a device: ``cpu``, ``h100``, ``a100``, …"""
-  if device.platform == "cpu":
-    return "cpu"
-  match = re.search(r"([A-Z]+\d{2,4})", device.device_kind)
-  return match.group(1).lower() if match else device.platform
-
-
-def _time_calls(fn, keys, images, min_time: float, min_reps: int, max_reps: int):
-  """Times ``fn(key, images)`` with successive keys; returns the times in seconds."""
-  for key in keys[:2]:  # warm-up
-    jax.block_until_ready(fn(key, images))
-  times = []
-  start = time.perf_counter()
-  for key in keys[2:]:
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn(key, images))
-    times.append(time.perf_counter() - t0)
-    if len(times) >= max_reps or (len(times) >= min_reps
-                                  and time.perf_counter() - start > min_time):
-      break
-  return np.asarray(times)
 
 
 def bench_one(name: str, batch: int, size: int, stack: int, min_time: float,
@@ -81,14 +55,17 @@ def bench_one(name: str, batch: int, size: int, stack: int, min_time: float,
   next_obs = jax.device_put(rng.integers(0, 256, shape, dtype=np.uint8), device)
   keys = list(jax.random.split(jax.random.key(seed), max_reps + 2))
   aug = augment.get(name)
-  row = {"name": name, "device_kind": device.device_kind, "platform": device.platform,
+  row = {"name": name, "device_kind": device.device_kind, "device": device.device_kind,
+         "platform": device.platform,
          "jax": jax.__version__, "batch": batch, "shape": list(shape), "dtype": "uint8"}
   for tag, images in (("", obs), ("pair_", (obs, next_obs))):
     fn = jax.jit(aug)
     t0 = time.perf_counter()
     compiled = fn.lower(keys[0], images).compile()
     row[f"{tag}compile_s"] = round(time.perf_counter() - t0, 3)
-    times = _time_calls(compiled, keys, images, min_time, min_reps, max_reps)
+    fresh = iter(keys)  # a new key per call: two warm-up calls, then the timed ones
+    times = np.asarray(R.time_calls(lambda: compiled(next(fresh), images), repeats=min_reps,
+                                    seconds=min_time, max_calls=max_reps, warmup=2))
     row[f"{tag}reps"] = int(times.size)
     row[f"{tag}median_ms"] = round(float(np.median(times)) * 1e3, 4)
     row[f"{tag}p10_ms"] = round(float(np.percentile(times, 10)) * 1e3, 4)
@@ -100,22 +77,16 @@ def bench_one(name: str, batch: int, size: int, stack: int, min_time: float,
 def markdown_table(rows: list[dict]) -> str:
   """The rows as a Markdown table (one line per augmentation)."""
   first = rows[0]
-  lines = [
-      f"Augmentation time per batch of {first['batch']} × "
-      f"{'×'.join(map(str, first['shape'][1:]))} uint8 on {first['device_kind']} "
-      f"({first['platform']}, jax {first['jax']}); median of timed calls, "
-      "block_until_ready; compile time apart.",
-      "",
-      "| augmentation | median ms (obs) | p10–p90 ms | µs / image | "
-      "median ms (obs, next_obs) | compile s |",
-      "|---|---:|---:|---:|---:|---:|",
-  ]
-  for r in rows:
-    lines.append(
-        f"| `{r['name']}` | {r['median_ms']:.3f} "
-        f"| {r['p10_ms']:.3f}–{r['p90_ms']:.3f} | {r['us_per_image']:.2f} "
-        f"| {r['pair_median_ms']:.3f} | {r['compile_s']:.2f} |")
-  return "\n".join(lines) + "\n"
+  return (f"Augmentation time per batch of {first['batch']} × "
+          f"{'×'.join(map(str, first['shape'][1:]))} uint8 on {first['device_kind']} "
+          f"({first['platform']}, jax {first['jax']}); median of timed calls, "
+          "block_until_ready; compile time apart.\n\n" + R.table(rows, [
+              ("augmentation", lambda r: f"`{r['name']}`"),
+              ("median ms (obs)", lambda r: f"{r['median_ms']:.3f}"),
+              ("p10–p90 ms", lambda r: f"{r['p10_ms']:.3f}–{r['p90_ms']:.3f}"),
+              ("µs / image", lambda r: f"{r['us_per_image']:.2f}"),
+              ("median ms (obs, next_obs)", lambda r: f"{r['pair_median_ms']:.3f}"),
+              ("compile s", lambda r: f"{r['compile_s']:.2f}")]))
 
 
 def main(argv=None):
@@ -146,24 +117,24 @@ def main(argv=None):
       parser.error(str(e))
 
   out = args.out or os.path.join("benchmarks", "results",
-                                 f"augment_{device_slug(jax.devices()[0])}.jsonl")
+                                 f"augment_{R.device_slug(jax.devices()[0].device_kind)}.jsonl")
   os.makedirs(os.path.dirname(out) or ".", exist_ok=True)
+  open(out, "w").close()  # each run writes its own rows
   rows = []
-  stamp = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
-  with open(out, "w") as f:
-    for name in names:
-      row = bench_one(name, args.batch, args.size, args.stack, args.min_time,
-                      args.min_reps, args.max_reps)
-      row.update(cpu_count=os.cpu_count(), time_utc=stamp)
-      rows.append(row)
-      f.write(json.dumps(row) + "\n")
-      f.flush()
-      print(f"{name:>20s}  {row['median_ms']:9.3f} ms  "
-            f"(pair {row['pair_median_ms']:9.3f} ms)  "
-            f"compile {row['compile_s']:.2f} s", flush=True)
-  md = os.path.splitext(out)[0] + ".md"
-  with open(md, "w") as f:
-    f.write(markdown_table(rows))
+  stamp = R.utc_now()
+  for name in names:
+    row = bench_one(name, args.batch, args.size, args.stack, args.min_time,
+                    args.min_reps, args.max_reps)
+    run_s = row["median_ms"] / 1e3
+    row = R.row(dict(row, cpu_count=os.cpu_count(), time_utc=stamp), name, n=args.batch,
+                throughput=args.batch / run_s, unit="images/s", compile_s=row["compile_s"],
+                run_s=run_s)
+    rows.append(row)
+    R.emit(row, out)
+    print(f"{name:>20s}  {row['median_ms']:9.3f} ms  "
+          f"(pair {row['pair_median_ms']:9.3f} ms)  "
+          f"compile {row['compile_s']:.2f} s", flush=True)
+  md = R.write_markdown(out, markdown_table(rows))
   print(f"wrote {out} and {md}")
 
 

@@ -30,7 +30,6 @@ One JSON line per row and a Markdown table beside the JSONL file.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -39,8 +38,8 @@ import time
 import numpy as np
 
 import dmcr_jax  # first: picks a headless MUJOCO_GL before dm_control reads it
-from benchmarks.render import _gpu_name
-from dmcr_jax.env import RENDERERS
+from benchmarks import rows as R
+from dmcr_jax.env import check_renderer_name
 
 
 def original_pipeline(task: str, frame_skip: int, size: int, steps: int,
@@ -166,34 +165,47 @@ def obs_kept(row: dict) -> str:
   return "yes" if row.get("copy_obs", True) else "no"
 
 
+def variant(row: dict) -> str:
+  """The row's line in the suite's plot: quality and the settings that differ."""
+  name = row["quality"]
+  if row.get("renderer") == "jax" and row.get("obs_on_device"):
+    name += ", obs on device"
+  if row.get("copy_obs") is False:
+    name += ", no copy"
+  if row.get("ls_iterations") not in (None, "default"):
+    name += f", line search {row['ls_iterations']}"
+  return name
+
+
+def _stacked(r: dict) -> str:
+  return ("jitted step" if r.get("renderer") == "jax" else
+          "workers" if "copy_ms" in r else "main process")
+
+
 def markdown(rows: list[dict]) -> str:
   """One table of the "env" rows; each is compared with the original pipeline
   measured in its own run ("original" rows: the latest one is described above)."""
   original = [r for r in rows if r.get("kind") == "original"][-1]
   rows = [r for r in rows if r.get("kind") == "env"]
-  lines = [f"Original pipeline (one dm_control env, step ×{original['frame_skip']} + "
-           f"`physics.render`, model rebuilt per reset), latest run: "
-           f"{original['agent_steps_per_s']:,.0f} agent-steps/s "
-           f"({original['step_ms']:.1f} ms a step, {original['rebuild_ms']:.0f} ms a rebuild; "
-           f"{original['agent_steps_per_s_no_rebuild']:,.0f} without rebuilds).", "",
-           "| device | renderer | quality | envs | workers | stacked by | copy_obs "
-           "| line search | agent-steps/s | original "
-           "| × original | physics ms | transfer ms | render ms | copy / stack ms | UTC (month-day) |",
-           "|---|---|---|---:|---:|---|---|---|---:|---:|---:|---:|---:|---:|---:|---|"]
-  for r in rows:
-    jax_row = r.get("renderer") == "jax"
-    by_workers = "copy_ms" in r
-    stacked = "jitted step" if jax_row else "workers" if by_workers else "main process"
-    copy = "-" if jax_row else f"{r['copy_ms'] if by_workers else r['stack_ms']:.1f}"
-    lines.append(
-        f"| {r['device']} | {r.get('renderer', 'pool')} | {r['quality']} | "
-        f"{r['num_envs']:,} | {r['workers']} | {stacked} | "
-        f"{obs_kept(r)} | {r.get('ls_iterations', 'default')} | "
-        f"{r['agent_steps_per_s']:,.0f} | "
-        f"{r['original_agent_steps_per_s']:,.0f} | {r['speedup']:.1f} | "
-        f"{r['physics_ms']:.1f} | {r['transfer_ms']:.1f} | {r['render_ms']:.1f} | "
-        f"{copy} | {r['time_utc'][5:10]} {r['time_utc'][11:16]} |")
-  return "\n".join(lines) + "\n"
+  copy = lambda r: ("-" if r.get("renderer") == "jax" else
+                    f"{r['copy_ms'] if 'copy_ms' in r else r['stack_ms']:.1f}")
+  return (f"Original pipeline (one dm_control env, step ×{original['frame_skip']} + "
+          f"`physics.render`, model rebuilt per reset), latest run: "
+          f"{original['agent_steps_per_s']:,.0f} agent-steps/s "
+          f"({original['step_ms']:.1f} ms a step, {original['rebuild_ms']:.0f} ms a rebuild; "
+          f"{original['agent_steps_per_s_no_rebuild']:,.0f} without rebuilds).\n\n"
+          + R.table(rows, [
+              ("device", "device"), ("renderer", lambda r: r.get("renderer", "pool")),
+              ("quality", "quality"), ("envs", lambda r: f"{r['num_envs']:,}"),
+              ("workers", "workers"), ("stacked by", _stacked), ("copy_obs", obs_kept),
+              ("line search", lambda r: r.get("ls_iterations", "default")),
+              ("agent-steps/s", lambda r: f"{r['agent_steps_per_s']:,.0f}"),
+              ("original", lambda r: f"{r['original_agent_steps_per_s']:,.0f}"),
+              ("× original", lambda r: f"{r['speedup']:.1f}"),
+              ("physics ms", lambda r: f"{r['physics_ms']:.1f}"),
+              ("transfer ms", lambda r: f"{r['transfer_ms']:.1f}"),
+              ("render ms", lambda r: f"{r['render_ms']:.1f}"), ("copy / stack ms", copy),
+              ("UTC (month-day)", lambda r: f"{r['time_utc'][5:10]} {r['time_utc'][11:16]}")]))
 
 
 def main(argv=None) -> None:
@@ -221,19 +233,24 @@ def main(argv=None) -> None:
   p.add_argument("--out", default=None, help="JSONL path (appended to); .md beside")
   args = p.parse_args(argv)
   renderers = args.renderers.split(",")
-  bad = sorted(set(renderers) - set(RENDERERS))
-  if bad:
-    p.error(f"unknown renderer(s) {', '.join(bad)}; valid: {', '.join(RENDERERS)}")
+  try:
+    for name in renderers:
+      check_renderer_name(name)
+  except ValueError as e:
+    p.error(str(e))
   import jax
-  device = _gpu_name() if jax.default_backend() == "gpu" else "cpu"
+  device = (R.gpu_name() or "none") if jax.default_backend() == "gpu" else "cpu"
   common = dict(bench="env", device=device, platform=jax.default_backend(),
                 cpus=os.cpu_count(), host=platform.node(), task=args.task,
                 frame_skip=args.frame_skip, image_size=args.image_size, vary="all",
                 time_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
   original = original_pipeline(args.task, args.frame_skip, args.image_size,
                                args.original_steps)
-  rows = [dict(common, kind="original", **original)]
-  _emit(rows[0], args.out)
+  baseline = "original DMCR pipeline"
+  rows = [R.row(dict(common, kind="original", **original), baseline, n=1,
+                throughput=original["agent_steps_per_s"], unit="agent-steps/s",
+                run_s=original["step_ms"] / 1e3, is_baseline=True)]
+  R.emit(rows[0], args.out)
   budgets = [None if b == "default" else int(b) for b in args.ls_iterations.split(",")]
   runs = [(q, int(s), b) for q in (args.qualities.split(",") if "pool" in renderers else [])
           for s in args.sizes.split(",") for b in budgets]
@@ -251,26 +268,22 @@ def main(argv=None) -> None:
     row = dict(common, kind="env", **result)
     row["original_agent_steps_per_s"] = original["agent_steps_per_s"]
     row["speedup"] = row["agent_steps_per_s"] / original["agent_steps_per_s"]
+    row["parts_ms"] = {k[:-3]: row[k] for k in ("physics_ms", "transfer_ms", "render_ms",
+                                                "copy_ms", "stack_ms", "other_ms") if k in row}
+    row = R.row(row, variant(row), n=n, throughput=row["agent_steps_per_s"],
+                unit="agent-steps/s", compile_s=row["warmup_s"] - row.get("start_s", 0.0),
+                run_s=row["step_ms"] / 1e3, baseline=baseline,
+                baseline_throughput=original["agent_steps_per_s"])
     rows.append(row)
-    _emit(row, args.out)
+    R.emit(row, args.out)
   print(markdown(rows))
   if args.out:
-    with open(args.out) as f:
-      rows = [json.loads(line) for line in f]
-    with open(os.path.splitext(args.out)[0] + ".md", "w") as f:
-      f.write(f"Rows of `python -m benchmarks.env` runs appended to "
-              f"`{os.path.basename(args.out)}` (each row holds its device, settings and "
-              f"UTC time); the last: `python -m benchmarks.env {' '.join(argv)}` on "
-              f"{device} with {os.cpu_count()} cores. The original pipeline rebuilds the "
-              "model with `suite.load` (no texture edits).\n\n" + markdown(rows))
-
-
-def _emit(row: dict, out: str | None) -> None:
-  print(json.dumps(row), flush=True)
-  if out:
-    os.makedirs(os.path.dirname(out) or ".", exist_ok=True)
-    with open(out, "a") as f:
-      f.write(json.dumps(row) + "\n")
+    R.write_markdown(args.out, f"Rows of `python -m benchmarks.env` runs appended to "
+                     f"`{os.path.basename(args.out)}` (each row holds its device, settings "
+                     f"and UTC time); the last: `python -m benchmarks.env {' '.join(argv)}` "
+                     f"on {device} with {os.cpu_count()} cores. The original pipeline "
+                     "rebuilds the model with `suite.load` (no texture edits).\n\n"
+                     + markdown(R.read(args.out)))
 
 
 if __name__ == "__main__":

@@ -46,6 +46,8 @@ import time
 
 import numpy as np
 
+from benchmarks import rows as R
+
 
 def _device() -> str:
   import jax
@@ -102,18 +104,11 @@ def bench(task: str, n: int, size: int, shadows: bool, reflection: bool,
   fn = jax.jit(lambda scene, bp, look: JR.render_batch(
       scene, bp, look, height=size, width=size, shadows=shadows, reflection=reflection,
       chunk=chunk, kernel=kernel, **extra))
-  t0 = time.perf_counter()
-  jax.block_until_ready(fn(scene, bp, look))
-  compile_s = time.perf_counter() - t0
-  times = []
-  for _ in range(repeats):
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn(scene, bp, look))
-    times.append(time.perf_counter() - t0)
-  run_s = statistics.median(times)
+  timing = R.measure(lambda: fn(scene, bp, look), repeats=repeats)
   return dict(batch=n, chunk=None if kernel else chunk, kernel=kernel, **extra,
               shadows=shadows, reflection=reflection, objects=scene.num_objects,
-              compile_s=compile_s, run_s=run_s, frames_per_s=n / run_s)
+              compile_s=timing.compile_s, run_s=timing.run_s,
+              frames_per_s=n / timing.run_s)
 
 
 def check_kernel(task: str, n: int, size: int, shadows: bool, reflection: bool,
@@ -166,16 +161,12 @@ def bench_env(task: str, n: int, size: int, shadows: bool, reflection: bool,
   print(f"{task}, {n} envs: compiled in {compile_s:.1f} s (kernel={kernel})",
         file=sys.stderr, flush=True)
 
-  step_times = []
-  for _ in range(repeats):
-    t0 = time.perf_counter()
+  def stepped():
     for i in range(steps):
       obs = env.step(actions[i % len(actions)])[0]
-    jax.block_until_ready(obs)
-    step_times.append(time.perf_counter() - t0)
-
-  print(f"  env.step: {n * steps / statistics.median(step_times):,.0f} agent-steps/s",
-        file=sys.stderr, flush=True)
+    return obs
+  step_s = statistics.median(R.time_calls(stepped, repeats=repeats, warmup=0)) / steps
+  print(f"  env.step: {n / step_s:,.0f} agent-steps/s", file=sys.stderr, flush=True)
   lo, hi = jnp.asarray(low), jnp.asarray(high)
 
   def scanned(penv, state, key):
@@ -190,17 +181,14 @@ def bench_env(task: str, n: int, size: int, shadows: bool, reflection: bool,
 
   donate = () if jax.default_backend() == "cpu" else (1,)
   run = jax.jit(scanned, donate_argnums=donate)
-  state = jax_env.reset(penv, jax.random.key(1))
-  t0 = time.perf_counter()
-  state, _ = jax.block_until_ready(run(penv, state, jax.random.key(2)))
-  scan_compile_s = time.perf_counter() - t0
-  scan_times = []
-  for r in range(repeats):
-    t0 = time.perf_counter()
-    state, _ = jax.block_until_ready(run(penv, state, jax.random.key(3 + r)))
-    scan_times.append(time.perf_counter() - t0)
-  step_s = statistics.median(step_times) / steps
-  scan_s = statistics.median(scan_times) / scan_steps
+  carry = [jax_env.reset(penv, jax.random.key(1)), 2]  # state (donated), next key
+
+  def scan_call():
+    carry[0], _ = run(penv, carry[0], jax.random.key(carry[1]))
+    carry[1] += 1
+    return carry[0]
+  scan = R.measure(scan_call, repeats=repeats)
+  scan_compile_s, scan_s = scan.compile_s, scan.run_s / scan_steps
   return dict(batch=n, chunk=None if kernel else penv.render_chunk, kernel=kernel,
               shadows=shadows, reflection=reflection,
               ls_iterations=ls_iterations or "default",
@@ -211,30 +199,59 @@ def bench_env(task: str, n: int, size: int, shadows: bool, reflection: bool,
 
 
 def markdown_env(rows: list[dict]) -> str:
-  lines = ["| device | task | size | batch | chunk | frame skip | line search | compile s | "
-           "env.step agent-steps/s | scanned agent-steps/s |",
-           "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
-  for r in rows:
-    lines.append(f"| {r['device']} | {r['task']} | {r['size']} | {r['batch']:,} | "
-                 f"{'kernel' if r.get('kernel') else r['chunk'] or '–'} | {r['frame_skip']} | "
-                 f"{r.get('ls_iterations', 'default')} | "
-                 f"{r['compile_s'] + r['scan_compile_s']:.1f} | "
-                 f"{r['agent_steps_per_s']:,.0f} | {r['scan_agent_steps_per_s']:,.0f} |")
-  return "\n".join(lines) + "\n"
+  """The `--mode env` rows as one Markdown table."""
+  return R.table(rows, [
+      ("device", "device"), ("task", "task"), ("size", "size"),
+      ("batch", lambda r: f"{r['batch']:,}"),
+      ("chunk", lambda r: "kernel" if r.get("kernel") else r["chunk"] or "–"),
+      ("frame skip", "frame_skip"), ("line search", lambda r: r.get("ls_iterations", "default")),
+      ("compile s", lambda r: f"{r['compile_s'] + r['scan_compile_s']:.1f}"),
+      ("env.step agent-steps/s", lambda r: f"{r['agent_steps_per_s']:,.0f}"),
+      ("scanned agent-steps/s", lambda r: f"{r['scan_agent_steps_per_s']:,.0f}")])
+
+
+def _how(r: dict) -> str:
+  if r.get("kernel"):
+    return (f"kernel ({r['block']}, {r['num_warps']}"
+            f"{', skip' if r.get('skip_empty') else ''})")
+  return f"XLA, chunk {r['chunk'] or '–'}"
 
 
 def markdown(rows: list[dict]) -> str:
-  lines = ["| device | task | size | batch | kernel (block, warps) / chunk | shadows | "
-           "reflection | compile s | frames/s | label |",
-           "|---|---|---:|---:|---:|---|---|---:|---:|---|"]
-  for r in rows:
-    how = (f"kernel ({r['block']}, {r['num_warps']}{', skip' if r.get('skip_empty') else ''})"
-           if r.get("kernel")
-           else f"XLA, chunk {r['chunk'] or '–'}")
-    lines.append(f"| {r['device']} | {r['task']} | {r['size']} | {r['batch']:,} | "
-                 f"{how} | {r['shadows']} | {r['reflection']} | "
-                 f"{r['compile_s']:.1f} | {r['frames_per_s']:,.0f} | {r.get('label', '')} |")
-  return "\n".join(lines) + "\n"
+  """The `--mode render` rows as one Markdown table."""
+  return R.table(rows, [
+      ("device", "device"), ("task", "task"), ("size", "size"),
+      ("batch", lambda r: f"{r['batch']:,}"), ("kernel (block, warps) / chunk", _how),
+      ("shadows", "shadows"), ("reflection", "reflection"),
+      ("compile s", lambda r: f"{r['compile_s']:.1f}"),
+      ("frames/s", lambda r: f"{r['frames_per_s']:,.0f}"),
+      ("label", lambda r: r.get("label", ""))])
+
+
+def look(row: dict) -> str:
+  """The row's shadows and reflection, in words."""
+  return ", ".join(n for n, on in (("shadows", row["shadows"]),
+                                   ("reflection", row["reflection"])) if on) or (
+      "no shadows, no reflection")
+
+
+def suite_rows(row: dict) -> list[dict]:
+  """The rows of one measurement in the suite's format: the frames/s of `--mode
+  render`; for `--mode env` the row as `env.step` steps it and a row of its settings
+  as the scan steps it."""
+  if row["bench"] == "jax_render":
+    return [R.row(row, f"frames ({look(row)})", n=row["batch"],
+                  throughput=row["frames_per_s"], unit="frames/s",
+                  compile_s=row["compile_s"], run_s=row["run_s"])]
+  measured = ("compile_s", "scan_compile_s", "step_s", "scan_step_s", "agent_steps_per_s",
+              "scan_agent_steps_per_s")
+  settings = {k: v for k, v in row.items() if k not in measured}
+  return [R.row(row, f"env, env.step ({look(row)})", n=row["batch"],
+                throughput=row["agent_steps_per_s"], unit="agent-steps/s",
+                compile_s=row["compile_s"], run_s=row["step_s"]),
+          R.row(settings, f"env, scanned ({look(row)})", n=row["batch"],
+                throughput=row["scan_agent_steps_per_s"], unit="agent-steps/s",
+                compile_s=row["scan_compile_s"], run_s=row["scan_step_s"])]
 
 
 def main(argv=None) -> None:
@@ -269,7 +286,8 @@ def main(argv=None) -> None:
   import jax
   env_mode = args.mode == "env"
   common = dict(bench="jax_env" if env_mode else "jax_render", device=_device(),
-                backend=jax.default_backend(), cpus=os.cpu_count(), host=platform.node(),
+                backend=jax.default_backend(), platform=jax.default_backend(),
+                cpus=os.cpu_count(), host=platform.node(),
                 task=args.task, size=args.size, vary="all")
   if args.label:
     common["label"] = args.label
@@ -290,19 +308,15 @@ def main(argv=None) -> None:
                                  args.kernel, args.block, args.num_warps,
                                  args.skip_empty))
     rows.append(row)
-    print(json.dumps(row), flush=True)
-    if args.out:
-      os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-      with open(args.out, "a") as f:
-        f.write(json.dumps(row) + "\n")
+    for r in [row] if args.mode == "check" else suite_rows(row):
+      R.emit(r, args.out)
   if args.mode == "check":
     table = "".join(json.dumps(r) + "\n" for r in rows)
   else:
     table = markdown_env(rows) if env_mode else markdown(rows)
   print(table)
   if args.out:
-    with open(os.path.splitext(args.out)[0] + ".md", "w") as f:
-      f.write(f"`python -m benchmarks.jax_render {' '.join(argv)}`\n\n{table}")
+    R.write_markdown(args.out, f"`python -m benchmarks.jax_render {' '.join(argv)}`\n\n{table}")
 
 
 if __name__ == "__main__":

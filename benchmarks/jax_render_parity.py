@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from benchmarks import rows as R
 from dmcr_jax.visuals.jax_render import (build_scene, device_looks, poses, render,
                                          render_with_ids)
 
@@ -164,20 +165,20 @@ def parity_markdown(rows: Sequence[dict]) -> str:
   """A Markdown table of `parity_row` rows: one line per domain and scoring
   threshold (bodies whose silhouette covers fewer pixels are not scored), with the
   body of the lowest mean IoU."""
-  lines = ["| domain | min. pixels | frames | mean abs. diff (mean / max) | body-frames scored "
-           "| body IoU mean | min | share ≥ 0.95 | body with the lowest mean IoU |",
-           "|---|---:|---:|---:|---:|---:|---:|---:|---|"]
-  for r in rows:
-    worst = min(r["iou_per_body"], key=r["iou_per_body"].get)
-    counts = r.get("frames_per_body", {})
-    scored = sum(counts.values()) if counts else "–"
-    lines.append(f"| {r['domain']} | {r.get('min_pixels', '–')} | {r['frames']:,} "
-                 f"| {r['mad_mean']:.2f} / {r['mad_max']:.2f} | {scored} "
-                 f"| {r['iou_mean']:.4f} | {r['iou_min']:.3f} | {r['frac_body_iou_ge_095']:.1%} "
-                 f"| {worst} ({r['iou_per_body'][worst]:.3f} mean, "
-                 f"{r['frac_ge_095_per_body'][worst]:.0%} ≥ 0.95 of "
-                 f"{counts.get(worst, '?')} frames) |")
-  return "\n".join(lines) + "\n"
+  def worst(r):
+    body = min(r["iou_per_body"], key=r["iou_per_body"].get)
+    return (f"{body} ({r['iou_per_body'][body]:.3f} mean, "
+            f"{r['frac_ge_095_per_body'][body]:.0%} ≥ 0.95 of "
+            f"{r.get('frames_per_body', {}).get(body, '?')} frames)")
+  return R.table(rows, [
+      ("domain", "domain"), ("min. pixels", "min_pixels"),
+      ("frames", lambda r: f"{r['frames']:,}"),
+      ("mean abs. diff (mean / max)", lambda r: f"{r['mad_mean']:.2f} / {r['mad_max']:.2f}"),
+      ("body-frames scored", lambda r: sum(r.get("frames_per_body", {}).values()) or None),
+      ("body IoU mean", lambda r: f"{r['iou_mean']:.4f}"),
+      ("min", lambda r: f"{r['iou_min']:.3f}"),
+      ("share ≥ 0.95", lambda r: f"{r['frac_body_iou_ge_095']:.1%}"),
+      ("body with the lowest mean IoU", worst)])
 
 
 def main(argv=None) -> None:

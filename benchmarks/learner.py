@@ -40,7 +40,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import datetime
 import functools
 import json
 import os
@@ -51,7 +50,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks.augment import device_slug
+from benchmarks import rows as R
 from train import loop, replay, sac
 from train import step as train_step
 
@@ -120,18 +119,6 @@ def _agents(k: int, obs_shape, action_size: int, config: sac.SACConfig):
                                            config))(jnp.arange(k))
 
 
-def _timed(call, state, seconds: float, min_reps: int = 3):
-  """Runs ``state = call(state)`` until `seconds` have passed; per-call times."""
-  times = []
-  start = time.perf_counter()
-  while len(times) < min_reps or time.perf_counter() - start < seconds:
-    t0 = time.perf_counter()
-    state = call(state)
-    jax.block_until_ready(state)
-    times.append(time.perf_counter() - t0)
-  return np.asarray(times), state
-
-
 def scanned_workload(k: int = 1, dtype: str = "float32", agent_loop: str = "vmap",
                      batch: int | None = None, pairs: int = 25, size: int = 84,
                      stack: int = 3, action_size: int = 6, capacity: int = 10_000,
@@ -186,13 +173,8 @@ def bench_scanned(k: int, dtype: str, agent_loop: str, batch: int | None, pairs:
   call, config, size = scanned_workload(k, dtype, agent_loop, batch, pairs, size, stack,
                                         action_size, capacity, algo, aug, stage_inputs,
                                         devices)
-  t0 = time.perf_counter()
-  jax.block_until_ready(call())  # compiles
-  compile_s = time.perf_counter() - t0
-  step = lambda _: call()
-  _timed(step, None, 0.0, 2)  # warm-up
-  times, _ = _timed(step, None, seconds)
-  per_call = float(np.median(times))
+  timing = R.measure(call, repeats=3, seconds=seconds, warmup=2)  # the first call compiles
+  compile_s, per_call, times = timing.compile_s, timing.run_s, np.asarray(timing.times)
   updates = 2 * pairs
   return dict(kind="scanned", algo=algo, aug=",".join(config.aug_names) or "-", agents=k,
               devices=devices, dtype=dtype, agent_loop=agent_loop, stage_inputs=stage_inputs,
@@ -226,13 +208,14 @@ def bench_python_loop(batch: int | None, size: int, stack: int, action_size: int
   compile_s = time.perf_counter() - t0
   n = 20
 
-  def call(agent):
-    for i in range(n):  # a host dispatch per update, as a Python training loop
-      agent = one_update(agent, jax.random.fold_in(key, i), update_actor=i % 2 == 1)
-    return agent
+  carried = [agent]  # donated by each update
 
-  _, agent = _timed(call, agent, 0.0, 1)
-  times, _ = _timed(call, agent, seconds)
+  def call():
+    for i in range(n):  # a host dispatch per update, as a Python training loop
+      carried[0] = one_update(carried[0], jax.random.fold_in(key, i), update_actor=i % 2 == 1)
+    return carried[0]
+
+  times = np.asarray(R.time_calls(call, repeats=3, seconds=seconds, warmup=1))
   per_update = float(np.median(times)) / n
   return dict(kind="python_loop", algo="sac_aug", agents=1, devices=1, dtype="float32",
               agent_loop="-",
@@ -245,23 +228,33 @@ def bench_python_loop(batch: int | None, size: int, stack: int, action_size: int
 
 def markdown(rows: list[dict]) -> str:
   """All rows as one Markdown table, newest last."""
-  lines = ["| device | kind | algo | aug | agents | devices | dtype | agent loop | batch | "
-           "updates per call | compile s | ms per call | updates/s per agent | "
-           "agent-updates/s | scaling | × baseline | UTC |",
-           "|---|---|---|---|---:|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
-  for r in rows:
-    ratio, scaling = r.get("x_baseline"), r.get("scaling_efficiency")
-    lines.append(
-        f"| {r['device_kind']} | {r['kind']} | {r.get('algo', 'sac_aug')} | "
-        f"{r.get('aug', 'drq' if r.get('algo', 'sac_aug') == 'sac_aug' else '-')} | "
-        f"{r['agents']} | {r.get('devices', 1)} | "
-        f"{r['dtype']} | "
-        f"{r['agent_loop']}{'' if r.get('stage_inputs', True) else ', unstaged'} | {r['batch']} | {2 * r['pairs_per_call'] or 1} | "
-        f"{r['compile_s']:.1f} | {r['ms_per_call']:.1f} | "
-        f"{r['updates_per_s_per_agent']:,.0f} | {r['agent_updates_per_s']:,.0f} | "
-        f"{'' if scaling is None else f'{scaling:.2f}'} | "
-        f"{'' if ratio is None else f'{ratio:.1f}'} | {r['time_utc'][11:16]} |")
-  return "\n".join(lines) + "\n"
+  return R.table(rows, [
+      ("device", "device_kind"), ("kind", "kind"), ("algo", lambda r: r.get("algo", "sac_aug")),
+      ("aug", lambda r: r.get("aug", "drq" if r.get("algo", "sac_aug") == "sac_aug" else "-")),
+      ("agents", "agents"), ("devices", lambda r: r.get("devices", 1)), ("dtype", "dtype"),
+      ("agent loop", lambda r: r["agent_loop"] + ("" if r.get("stage_inputs", True)
+                                                  else ", unstaged")),
+      ("batch", "batch"), ("updates per call", lambda r: 2 * r["pairs_per_call"] or 1),
+      ("compile s", lambda r: f"{r['compile_s']:.1f}"),
+      ("ms per call", lambda r: f"{r['ms_per_call']:.1f}"),
+      ("updates/s per agent", lambda r: f"{r['updates_per_s_per_agent']:,.0f}"),
+      ("agent-updates/s", lambda r: f"{r['agent_updates_per_s']:,.0f}"),
+      ("scaling", lambda r: R.fmt(r.get("scaling_efficiency"), ".2f")),
+      ("× baseline", lambda r: R.fmt(r.get("x_baseline"), ".1f")),
+      ("UTC", lambda r: r["time_utc"][11:16])])
+
+
+PYTHON_LOOP = "python loop (one dispatch per update)"
+"""The baseline's name in the suite's rows."""
+
+
+def variant(row: dict) -> str:
+  """The row's line in the suite's plot: algorithm, K, dtype, loop and devices."""
+  if row["kind"] == "python_loop":
+    return PYTHON_LOOP
+  algo, k, n = row.get("algo", "sac_aug"), row["agents"], row.get("devices") or 1
+  return (("" if algo == "sac_aug" else f"{algo} ") + f"K={k} {row['dtype']}"
+          + (f" {row['agent_loop']}" if k > 1 else "") + (f" on {n} devices" if n > 1 else ""))
 
 
 def update_cost(dtype: str = "float32", algo: str = "sac_aug", batch: int | None = None,
@@ -344,13 +337,11 @@ def main(argv=None) -> None:
     return
   device = jax.devices()[0]
   out = a.out or os.path.join("benchmarks", "results",
-                              f"learner_{device_slug(device)}.jsonl")
+                              f"learner_{R.device_slug(device.device_kind)}.jsonl")
   os.makedirs(os.path.dirname(out) or ".", exist_ok=True)
-  common = dict(device_kind=device.device_kind, platform=device.platform,
-                jax=jax.__version__, size=a.size, stack=a.stack,
-                action_size=a.action_size, capacity=a.capacity,
-                time_utc=datetime.datetime.now(datetime.timezone.utc).isoformat(
-                    timespec="seconds"))
+  common = dict(device_kind=device.device_kind, device=device.device_kind,
+                platform=device.platform, jax=jax.__version__, size=a.size, stack=a.stack,
+                action_size=a.action_size, capacity=a.capacity, time_utc=R.utc_now())
   shape = dict(batch=a.batch, size=a.size, stack=a.stack, action_size=a.action_size,
                capacity=a.capacity, seconds=a.seconds)
   baseline = None
@@ -380,18 +371,18 @@ def main(argv=None) -> None:
         one_device[setting] = row["agent_updates_per_s"]
       row["scaling_efficiency"] = scaling_efficiency(
           row["agent_updates_per_s"], one_device.get(setting), row["devices"])
-    print(json.dumps(row), flush=True)
-    with open(out, "a") as f:
-      f.write(json.dumps(row) + "\n")
-  with open(out) as f:
-    rows = [json.loads(line) for line in f if line.strip()]
-  md = os.path.splitext(out)[0] + ".md"
-  with open(md, "w") as f:
-    f.write(f"Rows of `python -m benchmarks.learner` (see its docstring), appended to "
-            f"`{os.path.basename(out)}`; the last run: `python -m benchmarks.learner "
-            f"{' '.join(sys.argv[1:] if argv is None else argv)}` ({os.cpu_count()} "
-            f"cores). Updates/s count gradient updates (critic every update; actor, α and "
-            f"targets every second one).\n\n" + markdown(rows))
+    own = row["kind"] == "python_loop"
+    R.emit(R.row(row, variant(row), n=row["batch"], throughput=row["agent_updates_per_s"],
+                 unit="agent-updates/s", compile_s=row["compile_s"],
+                 run_s=row["ms_per_call"] / 1e3,
+                 baseline=PYTHON_LOOP if baseline and not own else None,
+                 baseline_throughput=None if own else baseline, is_baseline=own), out)
+  rows = R.read(out)
+  R.write_markdown(out, f"Rows of `python -m benchmarks.learner` (see its docstring), "
+                   f"appended to `{os.path.basename(out)}`; the last run: `python -m "
+                   f"benchmarks.learner {' '.join(sys.argv[1:] if argv is None else argv)}` "
+                   f"({os.cpu_count()} cores). Updates/s count gradient updates (critic every "
+                   "update; actor, α and targets every second one).\n\n" + markdown(rows))
   print(markdown(rows))
 
 

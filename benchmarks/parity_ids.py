@@ -21,6 +21,8 @@ import sys
 
 import numpy as np
 
+from benchmarks import rows as R
+
 
 def dump(domains: list[str], seeds: int, states: int, out: str, rgb: bool = False) -> None:
   """Saves `compare`'s body ids (int8, (frames, H, W)) per domain to `out`."""
@@ -68,15 +70,15 @@ def compare(a: dict, b: dict) -> list[dict]:
 
 
 def markdown(rows: list[dict], first: str, second: str) -> str:
-  lines = ["| domain | frames | MuJoCo ids changed (px) | of them on silhouette edges "
-           "| frames with a change | ray-caster ids changed (px) "
-           f"| MuJoCo ≠ ray caster, {first} | MuJoCo ≠ ray caster, {second} |",
-           "|---|---:|---:|---:|---:|---:|---:|---:|"]
-  lines += [f"| {r['domain']} | {r['frames']} | {r['mujoco_changed']:,} | "
-            f"{r['mujoco_changed_on_edges']:,} | {r['mujoco_frames_changed']} | "
-            f"{r['ray_caster_changed']:,} | {r['disagree_first']:,} | {r['disagree_second']:,} |"
-            for r in rows]
-  return "\n".join(lines) + "\n"
+  count = lambda key: lambda r: f"{r[key]:,}"
+  return R.table(rows, [
+      ("domain", "domain"), ("frames", "frames"),
+      ("MuJoCo ids changed (px)", count("mujoco_changed")),
+      ("of them on silhouette edges", count("mujoco_changed_on_edges")),
+      ("frames with a change", "mujoco_frames_changed"),
+      ("ray-caster ids changed (px)", count("ray_caster_changed")),
+      (f"MuJoCo ≠ ray caster, {first}", count("disagree_first")),
+      (f"MuJoCo ≠ ray caster, {second}", count("disagree_second"))])
 
 
 def main(argv=None) -> None:

@@ -24,7 +24,6 @@ a sweep cut off by a time limit resumes where it stopped.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import statistics
@@ -35,6 +34,7 @@ from concurrent.futures import ThreadPoolExecutor
 import jax
 from mujoco import mjx
 
+from benchmarks import rows as R
 from dmcr_jax import models
 from dmcr_jax.models import base
 
@@ -43,16 +43,6 @@ def _compile(fn, *args):
   t0 = time.perf_counter()
   compiled = jax.jit(fn).lower(*args).compile()
   return compiled, time.perf_counter() - t0
-
-
-def _time(compiled, *args, repeats: int) -> float:
-  jax.block_until_ready(compiled(*args))  # warm-up
-  times = []
-  for _ in range(repeats):
-    t0 = time.perf_counter()
-    jax.block_until_ready(compiled(*args))
-    times.append(time.perf_counter() - t0)
-  return statistics.median(times)
 
 
 def task_rollout(task: models.Task, n: int, k: int):
@@ -126,7 +116,7 @@ def bench_tasks(names: list[str], sizes: list[int], k: int, repeats: int, baseli
     compiled = list(pool.map(lambda j: _compile(j[3], j[4], key), jobs))
   rows = {}
   for (task, n, kind, _, arg), (fn, compile_s) in zip(jobs, compiled):
-    run_s = _time(fn, arg, key, repeats=repeats)
+    run_s = statistics.median(R.time_calls(lambda: fn(arg, key), repeats=repeats))
     substeps = n * k * task.n_sub_steps
     row = rows.setdefault((task.name, n), _row(task, n, k, parallel_compiles))
     if kind == "task":
@@ -138,7 +128,11 @@ def bench_tasks(names: list[str], sizes: list[int], k: int, repeats: int, baseli
     if "run_s" in row and ("bare_run_s" in row or not baseline):
       if baseline:
         row["wrapper_speed_ratio"] = row["bare_run_s"] / row["run_s"]
-      yield row  # as soon as it is complete, so a cut-off run keeps it
+      bare = row.get("bare_physics_steps_per_s")  # yielded once complete: a cut-off run keeps it
+      yield R.row(row, task.name, n=n, throughput=row["physics_steps_per_s"],
+                  unit="physics steps/s", compile_s=row["compile_s"], run_s=row["run_s"],
+                  baseline=f"{task.name} bare MJX" if bare else None,
+                  baseline_throughput=bare)
 
 
 def _done(path: str | None, solver: tuple) -> set:
@@ -147,30 +141,27 @@ def _done(path: str | None, solver: tuple) -> set:
     return set()
   device = jax.devices()[0].device_kind
   done = set()
-  with open(path) as f:
-    for line in f:
-      r = json.loads(line)
-      task = models.load(r["task"], *solver)
-      if (r["device"] == device and r.get("solver_iterations") == task.solver_iterations
-          and r.get("ls_iterations") == task.ls_iterations
-          and r.get("matmul_precision", "default") == base.PHYSICS_MATMUL_PRECISION):
-        done.add((r["task"], r["num_envs"]))
+  for r in R.read(path):
+    task = models.load(r["task"], *solver)
+    if (r["device"] == device and r.get("solver_iterations") == task.solver_iterations
+        and r.get("ls_iterations") == task.ls_iterations
+        and r.get("matmul_precision", "default") == base.PHYSICS_MATMUL_PRECISION):
+      done.add((r["task"], r["num_envs"]))
   return done
 
 
 def markdown(rows: list[dict]) -> str:
-  lines = ["| device | task | solver it/ls | matmul precision | envs | physics steps/s "
-           "| bare MJX steps/s | task/bare | compile s |",
-           "|---|---|---|---|---:|---:|---:|---:|---:|"]
-  for r in rows:
-    bare = r.get("bare_physics_steps_per_s")
-    lines.append(
-        f"| {r['device']} | {r['task']} | {r.get('solver_iterations', '?')}/"
-        f"{r.get('ls_iterations', '?')} | {r.get('matmul_precision', 'default')} | "
-        f"{r['num_envs']:,} | {r['physics_steps_per_s']:,.0f} | "
-        + (f"{bare:,.0f} | {r['wrapper_speed_ratio']:.2f}" if bare else "– | –")
-        + f" | {r['compile_s']:.1f} |")
-  return "\n".join(lines) + "\n"
+  """The rows as one Markdown table."""
+  return R.table(rows, [
+      ("device", "device"), ("task", "task"),
+      ("solver it/ls",
+       lambda r: f"{r.get('solver_iterations', '?')}/{r.get('ls_iterations', '?')}"),
+      ("matmul precision", lambda r: r.get("matmul_precision", "default")),
+      ("envs", lambda r: f"{r['num_envs']:,}"),
+      ("physics steps/s", lambda r: f"{r['physics_steps_per_s']:,.0f}"),
+      ("bare MJX steps/s", lambda r: R.fmt(r.get("bare_physics_steps_per_s"), ",.0f")),
+      ("task/bare", lambda r: R.fmt(r.get("wrapper_speed_ratio"), ".2f")),
+      ("compile s", lambda r: f"{r['compile_s']:.1f}")])
 
 
 def main(argv=None) -> None:
@@ -218,19 +209,13 @@ def _run(args) -> None:
     wave = todo[i:i + max(1, args.tasks_per_wave)]
     for row in bench_tasks(wave, sizes, args.steps, args.repeats, not args.no_baseline,
                            args.parallel_compiles, solver):
-      print(json.dumps(row), flush=True)
+      R.emit(row, args.out)
       rows.append(row)
-      if args.out:
-        os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-        with open(args.out, "a") as f:
-          f.write(json.dumps(row) + "\n")
   if args.out:
-    with open(args.out) as f:
-      rows = [json.loads(line) for line in f]
-    with open(os.path.splitext(args.out)[0] + ".md", "w") as f:
-      f.write("Rows from `python -m benchmarks.physics` runs appended to "
-              f"`{os.path.basename(args.out)}` (each row holds its device and settings).\n\n")
-      f.write(markdown(rows))
+    rows = R.read(args.out)
+    R.write_markdown(args.out, "Rows from `python -m benchmarks.physics` runs appended to "
+                     f"`{os.path.basename(args.out)}` (each row holds its device and "
+                     "settings).\n\n" + markdown(rows))
   print(markdown(rows))
 
 

@@ -41,6 +41,8 @@ import tempfile
 import time
 from typing import Any, Callable, Sequence
 
+from benchmarks import rows as R
+
 HOST_THREAD_PREFIXES = ("tf_XLA",)
 """Thread-name prefixes of XLA's CPU worker threads (used when no device is traced)."""
 
@@ -173,12 +175,14 @@ def markdown(summary: dict[str, Any], title: str = "") -> str:
   lines = [f"{title}\n" if title else "",
            f"Traced time on the {summary['source']}: {summary['total_ms']:,.1f} ms in "
            f"{summary['groups']} groups (top {len(summary['rows'])} below).", "",
-           "| op / kernel | calls | total ms | mean µs | share |", "|---|---:|---:|---:|---:|"]
-  for r in summary["rows"]:
-    name = r["name"] if len(r["name"]) <= 100 else r["name"][:97] + "…"
-    lines.append(f"| `{name}` | {r['calls']:,} | {r['total_ms']:,.2f} | {r['mean_us']:,.1f} "
-                 f"| {r['share']:.1%} |")
-  return "\n".join(lines).lstrip("\n") + "\n"
+           R.table(summary["rows"], [
+               ("op / kernel", lambda r: "`" + (r["name"] if len(r["name"]) <= 100
+                                                else r["name"][:97] + "…") + "`"),
+               ("calls", lambda r: f"{r['calls']:,}"),
+               ("total ms", lambda r: f"{r['total_ms']:,.2f}"),
+               ("mean µs", lambda r: f"{r['mean_us']:,.1f}"),
+               ("share", lambda r: f"{r['share']:.1%}")])]
+  return "\n".join(lines).lstrip("\n")
 
 
 def profile_call(call: Callable[[], Any], out_dir: str, calls: int = 3) -> str:

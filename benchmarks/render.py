@@ -19,7 +19,6 @@ the baseline) and a Markdown table beside the JSONL file.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import statistics
@@ -28,15 +27,7 @@ import time
 
 import numpy as np
 
-
-def _gpu_name() -> str:
-  try:
-    import subprocess
-    out = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"],
-                         capture_output=True, text=True, timeout=10).stdout.strip()
-    return out.splitlines()[0] if out else "none"
-  except Exception:  # noqa: BLE001 - no GPU tools
-    return "none"
+from benchmarks import rows as R
 
 
 def _inputs(rm, n: int, seed: int = 0):
@@ -73,11 +64,8 @@ def bench_pool(task: str, batch: int, workers: int, quality: str, size: int,
     qpos, looks = _inputs(pool.rm, batch)
     looks = rmod.prepare(pool.rm, looks)
     pixels = pool.render(qpos, looks)  # warm-up, and the frames checked below
-    times = []
-    for _ in range(repeats):
-      t0 = time.perf_counter()
-      pool.render(qpos, looks, copy_out=False)
-      times.append(time.perf_counter() - t0)
+    times = R.time_calls(lambda: pool.render(qpos, looks, copy_out=False), repeats=repeats,
+                         warmup=0)
     gl = pool.gl
     checked = None
     if quality == "exact":  # the reference renderer draws dm_control's settings
@@ -92,13 +80,13 @@ def bench_pool(task: str, batch: int, workers: int, quality: str, size: int,
 
 
 def markdown(rows: list[dict]) -> str:
-  lines = ["| device | gl | quality | batch | workers | frames/s | × naive | = reference |",
-           "|---|---|---|---:|---:|---:|---:|---:|"]
-  for r in rows:
-    lines.append(f"| {r['device']} | {r['gl']} | {r['quality']} | {r['batch']:,} | "
-                 f"{r['workers']} | {r['frames_per_s']:,.0f} | {r['speedup']:.1f} | "
-                 f"{r.get('reference_equal') or '–'} |")
-  return "\n".join(lines) + "\n"
+  """The pool rows as one Markdown table."""
+  return R.table(rows, [
+      ("device", "device"), ("gl", "gl"), ("quality", "quality"),
+      ("batch", lambda r: f"{r['batch']:,}"), ("workers", "workers"),
+      ("frames/s", lambda r: f"{r['frames_per_s']:,.0f}"),
+      ("× naive", lambda r: f"{r['speedup']:.1f}"),
+      ("= reference", lambda r: r.get("reference_equal") or "–")])
 
 
 def main(argv=None) -> None:
@@ -114,10 +102,10 @@ def main(argv=None) -> None:
   p.add_argument("--out", default=None)
   args = p.parse_args(argv)
   base_fps = baseline(args.task, args.baseline_frames, args.size)
-  common = dict(bench="render", device=_gpu_name(), cpus=os.cpu_count(),
+  common = dict(bench="render", device=R.gpu_name() or "cpu", cpus=os.cpu_count(),
                 host=platform.node(), task=args.task, size=args.size,
-                baseline_fps=base_fps, vary="all")
-  print(json.dumps(dict(common, kind="baseline")), flush=True)
+                baseline_fps=base_fps, vary="all", time_utc=R.utc_now())
+  naive = "naive mujoco.Renderer loop"
   rows = []
   for quality in args.qualities.split(","):
     for workers in [int(w) for w in args.workers.split(",")]:
@@ -125,19 +113,18 @@ def main(argv=None) -> None:
         row = dict(common, **bench_pool(args.task, batch, workers, quality, args.size,
                                         args.repeats))
         row["speedup"] = row["frames_per_s"] / base_fps
+        row = R.row(row, f"{quality}, {workers} workers", n=batch,
+                    throughput=row["frames_per_s"], unit="frames/s",
+                    compile_s=row["start_s"], run_s=row["run_s"], baseline=naive,
+                    baseline_throughput=base_fps)
         rows.append(row)
-        print(json.dumps(row), flush=True)
-        if args.out:
-          os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-          with open(args.out, "a") as f:
-            f.write(json.dumps(row) + "\n")
+        R.emit(row, args.out)
   table = markdown(rows)
   print(f"naive mujoco.Renderer loop: {base_fps:,.0f} frames/s\n{table}")
   if args.out:
-    with open(os.path.splitext(args.out)[0] + ".md", "w") as f:
-      f.write(f"`python -m benchmarks.render {' '.join(argv)}`\n\n"
-              f"Naive loop (one mujoco.Renderer, one process): {base_fps:,.0f} frames/s\n\n")
-      f.write(table)
+    R.write_markdown(args.out, f"`python -m benchmarks.render {' '.join(argv)}`\n\n"
+                     f"Naive loop (one mujoco.Renderer, one process): {base_fps:,.0f} "
+                     f"frames/s\n\n{table}")
 
 
 if __name__ == "__main__":

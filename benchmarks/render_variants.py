@@ -138,8 +138,8 @@ def main(argv=None) -> None:
   p.add_argument("--size", type=int, default=84)
   p.add_argument("--out", default=None)
   args = p.parse_args(argv)
-  from benchmarks.render import _gpu_name
-  device = _gpu_name()
+  from benchmarks.rows import gpu_name
+  device = gpu_name() or "none"
   rows = []
   for procs in [int(x) for x in args.procs.split(",")]:
     for v in VARIANTS:

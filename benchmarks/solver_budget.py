@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from mujoco import mjx
 
+from benchmarks import rows as R
 from dmcr_jax import models
 from dmcr_jax.models import base
 from tests import dmc_reference
@@ -188,17 +189,17 @@ def main(argv=None) -> None:
 
 
 def markdown(rows: list[dict]) -> str:
-  table = ["| device | task | solver it/ls | matmul precision | states × steps "
-           "| max abs drift vs dm_control | median over states "
-           "| max abs diff vs the task's first run |", "|---|---|---|---|---|---:|---:|---:|"]
-  table += [f"| {r.get('device', '?')} | {r['task']} | {r['solver_iterations']}/"
-            f"{r['ls_iterations']}{' (default)' if r['default'] else ''} | "
-            f"{r.get('matmul_precision', 'default')} | {r['states']} × {r['steps']} | "
-            f"{r['max_abs_drift']:.2e} | "
-            + (f"{r['median_abs_drift']:.2e}" if 'median_abs_drift' in r else "–")
-            + f" | {r['max_abs_diff_vs_first_budget']:.2e} |"
-            for r in rows]
-  return "\n".join(table) + "\n"
+  """The rows as one Markdown table."""
+  return R.table(rows, [
+      ("device", lambda r: r.get("device", "?")), ("task", "task"),
+      ("solver it/ls", lambda r: f"{r['solver_iterations']}/{r['ls_iterations']}"
+                                 + (" (default)" if r["default"] else "")),
+      ("matmul precision", lambda r: r.get("matmul_precision", "default")),
+      ("states × steps", lambda r: f"{r['states']} × {r['steps']}"),
+      ("max abs drift vs dm_control", lambda r: f"{r['max_abs_drift']:.2e}"),
+      ("median over states", lambda r: R.fmt(r.get("median_abs_drift"), ".2e")),
+      ("max abs diff vs the task's first run",
+       lambda r: f"{r['max_abs_diff_vs_first_budget']:.2e}")])
 
 
 if __name__ == "__main__":

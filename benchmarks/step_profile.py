@@ -34,9 +34,7 @@ the updates ("train")) appended to `--out`, and a Markdown table beside it.
 from __future__ import annotations
 
 import argparse
-import datetime
 import functools
-import json
 import os
 import statistics
 import sys
@@ -45,6 +43,7 @@ import time
 import numpy as np
 
 import dmcr_jax  # first: picks a headless MUJOCO_GL before dm_control reads it
+from benchmarks import rows as R
 
 ENV_PARTS = ("physics", "transfer", "render", "copy", "env_other")
 """The env step's parts, as `env.timings` names them, plus the unaccounted rest."""
@@ -77,13 +76,8 @@ def breakdown(parts_ms: dict, num_envs: int) -> dict:
 
 
 def _median_time(fn, reps: int) -> float:
-  """Median seconds of `fn()` (which blocks until its result is ready)."""
-  times = []
-  for _ in range(max(1, reps)):
-    t0 = time.perf_counter()
-    fn()
-    times.append(time.perf_counter() - t0)
-  return statistics.median(times)
+  """Median seconds of `reps` calls of `fn()`, its result blocked on."""
+  return statistics.median(R.time_calls(fn, repeats=reps, warmup=0))
 
 
 def profile_env(task: str, n: int, quality: str, workers: int | None, frame_skip: int,
@@ -256,7 +250,7 @@ def profile(task: str, n: int, quality: str, workers: int | None, frame_skip: in
                act=learner["act_ms"], buffer_add=learner["buffer_add_ms"],
                update=learner["per_update_ms"] * updates)
   device = jax.devices()[0]
-  return dict(
+  row = dict(
       bench="step_profile", device=device.device_kind, platform=device.platform,
       jax=jax.__version__, cpus=os.cpu_count(), task=task, num_envs=n, quality=quality,
       workers=env_part["workers"], frame_skip=frame_skip, frame_stack=frame_stack,
@@ -269,8 +263,13 @@ def profile(task: str, n: int, quality: str, workers: int | None, frame_skip: in
       env_start_s=round(env_part["start_s"], 2), env_step_ms=env_part["step_ms"],
       parts_ms=parts, per_update_ms=learner["per_update_ms"], updates_per_agent_step=updates,
       stack_one_process_ms=stack_shift_ms(n, size, frame_stack, reps),
-      **breakdown(parts, n),
-      time_utc=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"))
+      **breakdown(parts, n), time_utc=R.utc_now())
+  rate = row["train_agent_steps_per_s"]
+  return R.row(row, f"{task} {quality}", n=n, throughput=rate,
+               unit="agent-steps/s with updates", compile_s=row["compile_s"],
+               run_s=row["total_ms"] / 1e3,
+               headline=f"{row['total_ms']:,.1f} ms per agent step, i.e. {R.num(rate)} "
+                        "agent-steps/s with updates")
 
 
 PART_NOTES = {
@@ -295,12 +294,12 @@ def markdown(rows: list[dict]) -> str:
             f"{r['image_size']}×{r['image_size']}×"
             f"{3 * r['frame_stack']}; SAC batch {r['batch']}, {r['dtype']}, utd {r['utd']:g}; "
             f"{r['device']}, {r['time_utc']}**", "",
-            "| part | ms per agent step | share | what |", "|---|---:|---:|---|"]
-    for part, ms in r["parts_ms"].items():
-      share = r["shares"].get(part)
-      out.append(f"| {part} | {ms:,.2f} | {'–' if share is None else f'{share:.1%}'} | "
-                 f"{PART_NOTES.get(part, '')} |")
-    out += [f"| **total** | **{r['total_ms']:,.2f}** | 100% | |", "",
+            R.table([dict(part=p, ms=f"{ms:,.2f}", share=R.fmt(r["shares"].get(p), ".1%"),
+                          what=PART_NOTES.get(p, "")) for p, ms in r["parts_ms"].items()]
+                     + [dict(part="**total**", ms=f"**{r['total_ms']:,.2f}**", share="100%",
+                             what="")],
+                     [("part", "part"), ("ms per agent step", "ms"), ("share", "share"),
+                      ("what", "what")]).rstrip("\n"), "",
             f"One update: {r['per_update_ms']:,.2f} ms; an agent step owes N·utd = "
             f"{r['updates_per_agent_step']:,.0f} of them. Agent-steps/s: env alone "
             f"{r['env_agent_steps_per_s']:,.0f}, with acting and insert "
@@ -358,19 +357,13 @@ def main(argv=None) -> None:
                   a.image_size, a.steps, a.batch, a.dtype, a.utd, a.capacity, pairs, a.reps,
                   copy_obs=not a.no_copy, physics_device=a.physics_device)
     rows.append(row)
-    print(json.dumps(row), flush=True)
-    if a.out:
-      os.makedirs(os.path.dirname(a.out) or ".", exist_ok=True)
-      with open(a.out, "a") as f:
-        f.write(json.dumps(row) + "\n")
+    R.emit(row, a.out)
   if a.out:
-    with open(a.out) as f:
-      rows = [json.loads(line) for line in f if line.strip()]
-    with open(os.path.splitext(a.out)[0] + ".md", "w") as f:
-      f.write(f"Rows of `python -m benchmarks.step_profile` (see its docstring) appended "
-              f"to `{os.path.basename(a.out)}`; the last run: `python -m "
-              f"benchmarks.step_profile {' '.join(argv)}` ({os.cpu_count()} cores).\n\n"
-              + markdown(rows))
+    rows = R.read(a.out)
+    R.write_markdown(a.out, f"Rows of `python -m benchmarks.step_profile` (see its "
+                     f"docstring) appended to `{os.path.basename(a.out)}`; the last run: "
+                     f"`python -m benchmarks.step_profile {' '.join(argv)}` "
+                     f"({os.cpu_count()} cores).\n\n" + markdown(rows))
   print(markdown(rows))
 
 

@@ -43,12 +43,13 @@ from __future__ import annotations
 import argparse
 import csv
 import datetime
-import json
 import os
 import shutil
 import sys
 import tempfile
 import time
+
+from benchmarks import rows as R
 
 DEFAULT_TRAIN_ARGS = ("--task", "cartpole-balance", "--steps", "50000", "--num-envs", "16",
                       "--dtype", "bfloat16", "--quality", "exact", "--checkpoint-every", "0",
@@ -167,33 +168,56 @@ def check_device_counts(text: str, cfg) -> list[int]:
   return counts
 
 
+def _reached(r: dict) -> str:
+  if r.get("step_at_threshold") is not None:
+    return f"≥ {r['threshold']:g}: {r['step_at_threshold']:,}, {r['time_to_threshold_s']:.0f} s"
+  return f"never ≥ {r['threshold']:g}"
+
+
 def markdown(rows: list[dict]) -> str:
   """The rows as one Markdown table."""
-  lines = ["| device | task | renderer | physics | agents × envs (groups) | devices | steps "
-           "| dtype | quality "
-           "| loop wall s | whole run s | transitions/s | steady transitions/s "
-           "| total steady transitions/s | scaling "
-           "| learner alone updates/s | ratio | first ≥ threshold (step, s) | final return "
-           "| UTC |",
-           "|---|---|---|---|---|---:|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"
-           "---:|---|"]
-  num = lambda v, f: "–" if v is None else format(v, f)
-  for r in rows:
-    hit = (f"≥ {r['threshold']:g}: {r['step_at_threshold']:,}, {r['time_to_threshold_s']:.0f} s"
-           if r.get("step_at_threshold") is not None else f"never ≥ {r['threshold']:g}")
-    final = "–" if r.get("final_return") is None else f"{r['final_return']:.1f}"
-    quality = r["quality"] if r.get("renderer", "pool") == "pool" else "–"
-    lines.append(f"| {r['device']} | {r['task']} | {r.get('renderer', 'pool')} | "
-                 f"{r.get('physics', '–')} | {r['agents']} × {r['num_envs']} "
-                 f"({r.get('env_groups', 1)}) | {r.get('devices', '–')} | "
-                 f"{r['steps']:,} | {r['dtype']} | {quality} | {r['wall_s']:,.1f} | "
-                 f"{r['process_s']:,.1f} | {r['transitions_per_s'] or 0:,.1f} | "
-                 f"{num(r.get('steady_transitions_per_s'), ',.1f')} | "
-                 f"{num(r.get('total_transitions_per_s'), ',.1f')} | "
-                 f"{num(r.get('scaling_efficiency'), '.2f')} | "
-                 f"{num(r.get('learner_updates_per_s'), ',.1f')} | "
-                 f"{num(r.get('ratio'), '.2f')} | {hit} | {final} | {r['time_utc'][11:16]} |")
-  return "\n".join(lines) + "\n"
+  return R.table(rows, [
+      ("device", "device"), ("task", "task"), ("renderer", lambda r: r.get("renderer", "pool")),
+      ("physics", lambda r: r.get("physics", "–")),
+      ("agents × envs (groups)",
+       lambda r: f"{r['agents']} × {r['num_envs']} ({r.get('env_groups', 1)})"),
+      ("devices", lambda r: r.get("devices", "–")), ("steps", lambda r: f"{r['steps']:,}"),
+      ("dtype", "dtype"),
+      ("quality", lambda r: r["quality"] if r.get("renderer", "pool") == "pool" else "–"),
+      ("loop wall s", lambda r: f"{r['wall_s']:,.1f}"),
+      ("whole run s", lambda r: f"{r['process_s']:,.1f}"),
+      ("transitions/s", lambda r: f"{r['transitions_per_s'] or 0:,.1f}"),
+      ("steady transitions/s", lambda r: R.fmt(r.get("steady_transitions_per_s"), ",.1f")),
+      ("total steady transitions/s", lambda r: R.fmt(r.get("total_transitions_per_s"), ",.1f")),
+      ("scaling", lambda r: R.fmt(r.get("scaling_efficiency"), ".2f")),
+      ("learner alone updates/s", lambda r: R.fmt(r.get("learner_updates_per_s"), ",.1f")),
+      ("ratio", lambda r: R.fmt(r.get("ratio"), ".2f")),
+      ("first ≥ threshold (step, s)", _reached),
+      ("final return", lambda r: R.fmt(r.get("final_return"), ".1f")),
+      ("UTC", lambda r: r["time_utc"][11:16])])
+
+
+def headline(r: dict) -> str:
+  """The suite headline's text for a run: its time, the steady rate against the
+  learner alone, the final return and when it first reached the threshold."""
+  text = f"{R.secs(r['wall_s'])} s for {r['steps']:,} steps"
+  if r.get("ratio") is not None:
+    text += (f", {r['steady_transitions_per_s']:,.1f} transitions/s steady against "
+             f"{r['learner_updates_per_s']:,.1f} updates/s alone (ratio {r['ratio']:.2f})")
+  if r.get("final_return") is not None:
+    text += f", final return {r['final_return']:.1f}"
+  if r.get("time_to_threshold_s") is not None:
+    return text + f", ≥ {r['threshold']:g} after {r['time_to_threshold_s']:.0f} s"
+  return text + f", never ≥ {r['threshold']:g}"
+
+
+def suite_row(r: dict) -> dict:
+  """The run's row with the suite's fields (`benchmarks.rows`)."""
+  n = r.get("devices") or 1
+  return R.row(r, f"{r['task']} {r['renderer']} {r['dtype']}"
+               + (f" on {n} devices" if n > 1 else ""), n=r["num_envs"],
+               throughput=r["transitions_per_s"], unit="transitions/s", run_s=r["wall_s"],
+               headline=headline(r))
 
 
 def main(argv=None) -> None:
@@ -243,19 +267,16 @@ def main(argv=None) -> None:
     if several:
       one = row["total_transitions_per_s"] if n == 1 else one
       row["scaling_efficiency"] = scaling_efficiency(row["total_transitions_per_s"], one, n)
-    print(json.dumps(row), flush=True)
+    row = suite_row(row)
     rows.append(row)
     if a.out:
       copy_outputs(run_dir, os.path.splitext(a.out)[0] + (f"_devices{n}" if several else ""))
-      with open(a.out, "a") as f:
-        f.write(json.dumps(row) + "\n")
+    R.emit(row, a.out)
   if a.out:
-    with open(a.out) as f:
-      rows = [json.loads(line) for line in f if line.strip()]
-    with open(os.path.splitext(a.out)[0] + ".md", "w") as f:
-      f.write(f"Rows of `python -m benchmarks.training` appended to "
-              f"`{os.path.basename(a.out)}`; the last run: `python -m benchmarks.training "
-              f"{' '.join(argv)}` ({os.cpu_count()} cores).\n\n" + markdown(rows))
+    R.write_markdown(a.out, f"Rows of `python -m benchmarks.training` appended to "
+                     f"`{os.path.basename(a.out)}`; the last run: `python -m "
+                     f"benchmarks.training {' '.join(argv)}` ({os.cpu_count()} cores).\n\n"
+                     + markdown(R.read(a.out)))
   print(markdown(rows))
 
 
