@@ -1,8 +1,10 @@
 """Shared test setup: headless GL for any MuJoCo rendering, quiet JAX on CPU.
 
-Tiers: `pytest -m "not slow"` skips the tests marked slow (each over ~12 s on a
-2-core CPU) for a fast developer run; CI runs every test. Tests marked full run a
-whole command at its defaults and only with `--run-full`."""
+Tiers: `pytest -m "not slow"` skips the tests marked slow (each over ~7 s on a
+2-core CPU, or needing a module fixture that is) for a fast developer run; CI
+runs every test. Tests marked full run a whole command at its defaults and only
+with `--run-full`. One JAX compilation cache serves the whole session
+(`share_compilations`)."""
 
 import atexit
 import os

@@ -219,6 +219,7 @@ def test_jit_vmap_invariance_and_determinism(bank):
   assert not np.array_equal(one[0], one[1])       # looks and states matter
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("domain", ["walker", "finger"])
 def test_running_minima_equal_stacked_distances(domain, bank):
   """The GPU's nearest-hit form (running minima over the objects) and the CPU's
@@ -303,6 +304,7 @@ def test_kernel_lowers_for_cuda(bank):
     assert "__gpu$xla.gpu.triton" in text and "dmcr_ray_cast" in text
 
 
+@pytest.mark.slow
 def test_variables_move_the_reacher_target(bank):
   rm, scene, looks, dl = _setup("reacher", bank, [0])
   bp = _poses(rm, rm.model.qpos0)

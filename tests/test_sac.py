@@ -349,6 +349,7 @@ def test_update_pair_scans(agent):
                scanned.params, looped.params)
 
 
+@pytest.mark.slow
 def test_update_pair_vmaps_over_agents():
   agents = jax.tree_util.tree_map(
       lambda *x: jnp.stack(x),

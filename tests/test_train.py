@@ -98,6 +98,7 @@ def test_open_run_checks_a_resumed_config_before_writing(tmp_path):
   assert os.listdir(cfg.out_dir) == ["config.json"]
 
 
+@pytest.mark.slow
 def test_checkpoint_round_trip(tmp_path):
   make = lambda s: jax.vmap(lambda k: sac.init_agent(k, (16, 16, 9), 1, TINY))(
       jax.random.split(jax.random.key(s), 2))
