@@ -91,6 +91,7 @@ def test_gymnasium_vector_episode_statistics_wrapper_over_episode_ends():
     env.close()
 
 
+@pytest.mark.slow
 def test_gymnasium_episode_statistics_wrapper_over_episode_ends():
   env = gymnasium.wrappers.RecordEpisodeStatistics(gymnasium.make(
       "dmcr/pendulum-swingup-v0", frame_skip=100, image_size=16, workers=1))

@@ -292,6 +292,7 @@ def test_kernel_is_the_gpu_default():
       JR.use_kernel(True)
 
 
+@pytest.mark.slow
 def test_kernel_lowers_for_cuda(bank):
   """The kernel lowers to Triton for a CUDA GPU (Pallas' own lowering, on this
   machine without one): every op of the per-pixel code has a Triton form."""
