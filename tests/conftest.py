@@ -1,14 +1,39 @@
 """Shared test setup: headless GL for any MuJoCo rendering, quiet JAX on CPU.
 
-Tiers: `pytest -m "not slow"` skips the tests marked slow (each over ~12 s on a
-2-core CPU) for a fast developer run; CI runs every test. Tests marked full run a
-whole command at its defaults and only with `--run-full`."""
+Tiers: `pytest -m "not slow"` skips the tests marked slow (each over ~7 s on a
+2-core CPU, or needing a module fixture that is) for a fast developer run; CI
+runs every test. Tests marked full run a whole command at its defaults and only
+with `--run-full`. One JAX compilation cache serves the whole session
+(`share_compilations`)."""
 
+import atexit
 import os
+import shutil
+import tempfile
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+
+def share_compilations() -> None:
+  """Points JAX's persistent compilation cache at one folder for the whole session.
+
+  Many tests compile the same physics, renderer and learner (same task, sizes and
+  flags) in different modules, xdist workers and subprocesses; with one cache an
+  identical XLA program compiles once. Set before JAX is imported and inherited
+  through the environment by xdist workers and subprocesses. A folder the user
+  set (JAX_COMPILATION_CACHE_DIR) is kept; else a fresh one, removed at exit by
+  the process that made it.
+  """
+  if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    folder = tempfile.mkdtemp(prefix="dmcr-jax-tests-")
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = folder
+    atexit.register(shutil.rmtree, folder, ignore_errors=True)
+  os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+
+
+share_compilations()
 
 
 def pytest_addoption(parser):

@@ -49,6 +49,7 @@ def test_vector_env_spaces_and_api():
     assert info["state"].shape == (2, env.task.observation_size)
 
 
+@pytest.mark.slow
 def test_dm_env_protocol():
   env = dmcr_jax.DmEnv("pendulum-swingup", visual_seed=5, frame_skip=100, image_size=16,
                        workers=1)
@@ -69,6 +70,7 @@ def test_dm_env_protocol():
     env.close()
 
 
+@pytest.mark.slow
 def test_gymnasium_vector_episode_statistics_wrapper_over_episode_ends():
   from gymnasium.wrappers.vector import RecordEpisodeStatistics
   env = RecordEpisodeStatistics(dmcr_jax.make("pendulum-swingup", num_envs=2, frame_skip=100,
@@ -89,6 +91,7 @@ def test_gymnasium_vector_episode_statistics_wrapper_over_episode_ends():
     env.close()
 
 
+@pytest.mark.slow
 def test_gymnasium_episode_statistics_wrapper_over_episode_ends():
   env = gymnasium.wrappers.RecordEpisodeStatistics(gymnasium.make(
       "dmcr/pendulum-swingup-v0", frame_skip=100, image_size=16, workers=1))

@@ -226,6 +226,7 @@ def test_aux_step_moves_exactly_the_encoder_and_its_partner(algo):
     assert np.all(np.sign(kernel) == -np.sign(params["decoder"]["params"]["fc"]["kernel"]))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("algo", ["curl", "sac_ae"])
 def test_update_runs_the_aux_step_after_sac(algo):
   config, agent = _agent(algo)

@@ -1,7 +1,6 @@
 """The commands as a user meets them: clean stdout, help with defaults, one-paragraph
 errors that end the process (run in subprocesses with a timeout)."""
 
-import json
 import os
 import subprocess
 import sys
@@ -92,6 +91,7 @@ def test_help_shows_defaults_and_choices():
     assert want in text, want
 
 
+@pytest.mark.slow
 def test_train_imports_and_checks_your_augmentation_before_compiling(tmp_path):
   out = str(tmp_path / "run")
   (tmp_path / "my_augs.py").write_text(

@@ -11,7 +11,9 @@ import pytest
 from train import demo as dm
 from train import sac
 
-pytestmark = pytest.mark.xdist_group("demo")
+# test_evaluate's group: its JAX-renderer evaluation is sized as the demo's (2 envs,
+# cartpole, 16 px), so one worker compiles that env and policy once for both.
+pytestmark = pytest.mark.xdist_group("evaluate")
 
 # Cartpole at action repeat 100 (10 agent steps per episode), tiny networks.
 TINY = dm.Demo(steps=24, num_envs=2, train_looks=2, image_size=16, action_repeat=100,

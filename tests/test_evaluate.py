@@ -78,15 +78,17 @@ def test_bad_protocols_are_rejected():
 
 @pytest.mark.slow
 def test_the_jax_renderer_runs_the_same_protocol(run_dir, tmp_path):
-  # The same episodes (initial states, looks) rendered by the JAX ray caster: the
-  # table has the same shape, and says which renderer drew it.
+  # The same protocol rendered by the JAX ray caster: the table has the same shape,
+  # and says which renderer drew it. Sized as `dmcr-demo`'s evaluation in
+  # test_demo.py (2 envs, same group and worker), which reuses its compilations.
   cfg = ev.EvalConfig(**{**TINY.__dict__, "quality": "exact", "workers": None,
-                         "renderer": "jax", "conditions": ("none", "all")})
+                         "renderer": "jax", "conditions": ("none", "all"),
+                         "dynamics_seeds": 1, "train_episodes": 2})
   summary = ev.evaluate(run_dir, cfg, out_dir=str(tmp_path), agents=[0], progress=False)
   row = summary["agents"][0]
-  assert len(row["train"]["episodes"]) == TINY.train_episodes
+  assert len(row["train"]["episodes"]) == cfg.train_episodes
   for c in ("none", "all"):
-    assert len(row["conditions"][c]["episodes"]) == TINY.visual_seeds * TINY.dynamics_seeds
+    assert len(row["conditions"][c]["episodes"]) == cfg.visual_seeds * cfg.dynamics_seeds
     assert np.isfinite(row["conditions"][c]["mean"])
   with open(tmp_path / "eval.md") as f:
     assert "rendered by the JAX ray caster" in f.read()
@@ -108,7 +110,8 @@ def test_protocol_table_arithmetic_and_determinism(run_dir, tmp_path):
           (row["train"]["mean"] - cell["mean"]) / row["train"]["mean"])
   mean = first["mean"]
   assert mean["train"] == pytest.approx(np.mean([r["train"]["mean"] for r in first["agents"]]))
-  assert set(first["test_visual_seeds"]).isdisjoint(range(0, 2**30))
+  # No test look in the training range [0, 2**30).
+  assert min(first["test_visual_seeds"]) >= 2**30
 
   with open(tmp_path / "a" / "eval.md") as f:
     table = f.read()

@@ -109,6 +109,7 @@ def test_each_agents_envs_draw_only_from_its_range_deterministically():
       np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+@pytest.mark.slow
 def test_a_seeds_look_is_the_same_in_every_range_and_batch():
   task = dmcr_jax.load("pendulum-swingup")
   make = lambda seeds, n: jax_env.make_env(task, n, seeds, "all", 100, 3, 16, 16)

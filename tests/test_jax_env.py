@@ -97,6 +97,7 @@ def test_frames_are_close_to_the_pool_env(rollouts):
     assert np.abs(a[0].astype(int) - b[1].astype(int)).mean() > MAD_BOUND
 
 
+@pytest.mark.slow
 def test_autoreset_and_frame_stacks_at_episode_boundaries(rollouts, envs):
   obs, info = rollouts[0]["obs"], rollouts[0]["info"]
   assert obs[0].shape == (N, SIZE, SIZE, 9) and obs[0].dtype == np.uint8
@@ -120,6 +121,7 @@ def test_autoreset_and_frame_stacks_at_episode_boundaries(rollouts, envs):
   np.testing.assert_array_equal(envs[0].render(), obs[-1][..., -3:])
 
 
+@pytest.mark.slow
 def test_few_shot_looks_are_drawn_in_range_and_made_on_the_device(rollouts, envs):
   jenv = envs[0]
   seeds = np.stack([i["visual_seed"] for i in rollouts[0]["info"]])
@@ -134,6 +136,7 @@ def test_few_shot_looks_are_drawn_in_range_and_made_on_the_device(rollouts, envs
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_same_seed_same_pixels_and_one_compilation(rollouts, envs, actions):
   jenv = envs[0]
   again = _run(jenv, 11, actions[:EPISODE + 2])
@@ -143,6 +146,7 @@ def test_same_seed_same_pixels_and_one_compilation(rollouts, envs, actions):
   assert jax_env.step._cache_size() == 1       # every step reused one compilation
 
 
+@pytest.mark.slow
 def test_render_inputs_alone_draw_what_the_whole_physics_draws(envs, actions):
   # What the env moves to the render device when the physics runs on another
   # (`render_inputs`) gives the fused step's frames, stacks and looks, also for
@@ -162,6 +166,7 @@ def test_render_inputs_alone_draw_what_the_whole_physics_draws(envs, actions):
   np.testing.assert_array_equal(np.asarray(want.obs[1]), np.asarray(after.obs[1]))
 
 
+@pytest.mark.slow
 def test_set_state_restarts_the_stacks_from_that_state(envs):
   jenv = envs[0]
   jenv.reset(seed=5)

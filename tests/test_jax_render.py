@@ -169,6 +169,25 @@ def _setup(domain, bank, seeds):
   return rm, scene, looks, JS.device_looks(scene, rm, looks)
 
 
+def test_scene_ignores_the_look_a_mujoco_render_left_in_the_model(bank):
+  # `RM.apply` (MuJoCo's renderer, e.g. `dmcr-show`'s grid) writes a look into the
+  # shared model; a scene built afterwards (the JAX renderer in the same process)
+  # still shows dm_control's look, with the same material slots.
+  import copy
+  rm = copy.copy(RM.build_render_model("cartpole", bank))
+  scene = JS.build_scene(rm)
+  slots = JS.material_slots(scene, rm)
+  looks = RM.prepare(rm, rm.sample(np.arange(1, 9), "floor,light,camera,body"))
+  index = int(np.flatnonzero(looks.floor_matid != rm.dflt["floor_matid"])[0])
+  RM.apply(rm, looks, index)
+  assert rm.model.geom_matid[rm.floor_geom] != rm.dflt["floor_matid"]
+  after = JS.build_scene(rm)
+  np.testing.assert_array_equal(JS.material_slots(after, rm), slots)
+  assert jax.tree.structure(after) == jax.tree.structure(scene)
+  for a, b in zip(jax.tree.leaves(after), jax.tree.leaves(scene)):
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
 def _poses(rm, qpos):
   d = mujoco.MjData(rm.model)
   d.qpos[:] = qpos
@@ -219,6 +238,7 @@ def test_jit_vmap_invariance_and_determinism(bank):
   assert not np.array_equal(one[0], one[1])       # looks and states matter
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("domain", ["walker", "finger"])
 def test_running_minima_equal_stacked_distances(domain, bank):
   """The GPU's nearest-hit form (running minima over the objects) and the CPU's
@@ -291,6 +311,7 @@ def test_kernel_is_the_gpu_default():
       JR.use_kernel(True)
 
 
+@pytest.mark.slow
 def test_kernel_lowers_for_cuda(bank):
   """The kernel lowers to Triton for a CUDA GPU (Pallas' own lowering, on this
   machine without one): every op of the per-pixel code has a Triton form."""
@@ -303,6 +324,7 @@ def test_kernel_lowers_for_cuda(bank):
     assert "__gpu$xla.gpu.triton" in text and "dmcr_ray_cast" in text
 
 
+@pytest.mark.slow
 def test_variables_move_the_reacher_target(bank):
   rm, scene, looks, dl = _setup("reacher", bank, [0])
   bp = _poses(rm, rm.model.qpos0)

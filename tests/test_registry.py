@@ -45,6 +45,7 @@ def test_tolerance_bad_arguments():
     tolerance(3., margin=1., sigmoid="nope")
 
 
+@pytest.mark.slow
 def test_actions_clipped_and_non_finite_handled():
   task = models.load("cartpole-balance")
   s0 = jax.jit(task.reset)(jax.random.key(0))  # eager MJX runs op by op: far slower

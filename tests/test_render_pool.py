@@ -101,6 +101,7 @@ def test_close_leaves_nothing_behind():
   assert not any(os.path.exists(f"/dev/shm/{n}") for n in names)
 
 
+@pytest.mark.slow
 def test_frame_stacks_built_in_the_workers_survive_a_killed_worker(pool):
   with RenderPool("reacher-easy", max_batch=8, workers=2, frame_stack=3) as stacked:
     calls = [_inputs(pool.rm, 5, seed=s) for s in (3, 4, 5, 6)]
@@ -162,6 +163,7 @@ print("equal", bool(np.array_equal(frames["osmesa"], frames["egl"])),
 """
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(__import__("ctypes.util").util.find_library("OSMesa") is None,
                     reason="the OSMesa library is not installed (Debian: libosmesa6)")
 def test_osmesa_renders_in_a_plain_shell():

@@ -349,6 +349,7 @@ def test_update_pair_scans(agent):
                scanned.params, looped.params)
 
 
+@pytest.mark.slow
 def test_update_pair_vmaps_over_agents():
   agents = jax.tree_util.tree_map(
       lambda *x: jnp.stack(x),
@@ -394,6 +395,7 @@ def test_agents_with_different_augmentations_vmap_together():
     sac.SACConfig(aug="drq,drq")
 
 
+@pytest.mark.slow
 def test_bfloat16_compute_stays_close_to_float32(agent, batch):
   half = dataclasses.replace(CONFIG, compute_dtype="bfloat16")
   nets32, nets16 = sac.make_networks(ACTION_SIZE, CONFIG), sac.make_networks(ACTION_SIZE, half)

@@ -99,6 +99,7 @@ def test_open_run_checks_a_resumed_config_before_writing(tmp_path):
   assert os.listdir(cfg.out_dir) == ["config.json"]
 
 
+@pytest.mark.slow
 def test_checkpoint_round_trip(tmp_path):
   make = lambda s: jax.vmap(lambda k: sac.init_agent(k, (16, 16, 9), 1, TINY))(
       jax.random.split(jax.random.key(s), 2))
@@ -115,8 +116,10 @@ def test_checkpoint_round_trip(tmp_path):
 @pytest.mark.slow
 def test_interrupted_run_resumes_where_it_stopped(tmp_path):
   out = str(tmp_path / "run")
-  # The resumed run (in this process) reuses the interrupted one's compilations.
-  cache = str(tmp_path / "jax_cache")
+  # The resumed run (in this process) reuses the interrupted one's compilations:
+  # both use the session's compilation cache (conftest), or one of their own.
+  own = jax.config.jax_compilation_cache_dir is None
+  cache = str(tmp_path / "jax_cache") if own else jax.config.jax_compilation_cache_dir
   jax.config.update("jax_compilation_cache_dir", cache)
   script = textwrap.dedent(f"""
       from train import loop, sac
@@ -168,7 +171,8 @@ def test_interrupted_run_resumes_where_it_stopped(tmp_path):
     loop.train(loop.TrainConfig(steps=5, out_dir=str(tmp_path / "empty"), **CFG),
                resume=True, progress=False)
   assert not os.path.exists(tmp_path / "empty")
-  jax.config.update("jax_compilation_cache_dir", None)
+  if own:
+    jax.config.update("jax_compilation_cache_dir", None)
 
 
 @pytest.mark.slow

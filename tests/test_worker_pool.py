@@ -84,6 +84,7 @@ def test_workers_leave_sigint_and_sigterm_to_the_parent(tmp_path):
     assert pool.restarts == 0 and pool.pids == old
 
 
+@pytest.mark.slow
 def test_hung_worker_times_out_and_is_replaced(tmp_path):
   with make_pool(tmp_path, workers=2, timeout=3.0)[0] as pool:
     n = 8

@@ -326,7 +326,7 @@ def build_scene(rm: rmod.RenderModel, camera: int | str = 0) -> Scene:
       intersect, a textured object other than the floor, or a camera mode
       other than fixed / track / trackcom.
   """
-  m = rm.model
+  m = rmod.with_default_look(rm).model   # not the look a MuJoCo render applied last
   cam = camera if isinstance(camera, (int, np.integer)) else find_id(
       m, mujoco.mjtObj.mjOBJ_CAMERA, camera)
   if not 0 <= cam < m.ncam:
@@ -431,7 +431,9 @@ def rm_variables(rm: rmod.RenderModel) -> tuple[str, ...]:
 def material_slots(scene: Scene, rm: rmod.RenderModel) -> np.ndarray:
   """Material id of every slot of `DeviceLook.mat_rgba` (in slot order)."""
   m = rm.model
-  mats = sorted({int((m.geom_matid if t == _GEOM else m.site_matid)[i])
+  geom_matid = m.geom_matid.copy()   # the floor's as built, not an applied look's
+  geom_matid[rm.floor_geom] = rm.dflt["floor_matid"]
+  mats = sorted({int((geom_matid if t == _GEOM else m.site_matid)[i])
                  for t, i in scene.obj_ids} - {-1, rm.dflt["floor_matid"]})
   return np.asarray(mats, np.int64)
 

@@ -102,6 +102,24 @@ class RenderModel:
                   num_backgrounds=self.bank.num_backgrounds)
 
 
+def with_default_look(rm: RenderModel) -> RenderModel:
+  """A copy of `rm` whose model shows dm_control's look, whatever look `apply`
+  wrote into `rm.model` last: every field `apply` writes is set back to `rm.dflt`
+  (the skybox lives in a GL context, not in the model)."""
+  out = rm.__copy__()
+  m, d, c, l = out.model, rm.dflt, rm.cam_id, rm.light_id
+  m.mat_rgba[:] = d["mat_rgba"]
+  m.mat_reflectance[:] = d["mat_reflectance"]
+  m.geom_matid[rm.floor_geom] = d["floor_matid"]
+  hl = m.vis.headlight
+  hl.ambient[:], hl.diffuse[:], hl.specular[:] = d["headlight"]
+  for name in ("cam_pos", "cam_quat", "cam_pos0", "cam_poscom0", "cam_mat0"):
+    getattr(m, name)[c] = d[name]
+  for name in ("light_pos", "light_dir", "light_pos0", "light_poscom0", "light_dir0"):
+    getattr(m, name)[l] = d[name]
+  return out
+
+
 def _copy_model(m: mujoco.MjModel) -> mujoco.MjModel:
   import copy
   return copy.copy(m)
