@@ -325,6 +325,11 @@ def _label(row: dict) -> str:
   return algo if aug == "none" else f"{algo}, {aug}"
 
 
+def _several_ranges(summary: dict) -> bool:
+  """Whether the summary's agents trained on more than one training-look range."""
+  return len({r.get("train_look") for r in summary["agents"]}) > 1
+
+
 def aug_groups(summary: dict) -> list[dict]:
   """The agents grouped by augmentation (by algorithm and augmentation), in run order;
   in a run with several training-look ranges, by augmentation and range (a mean
@@ -342,7 +347,7 @@ def aug_groups(summary: dict) -> list[dict]:
     column taken as the train return), or None.
   """
   conditions = summary["conditions"]
-  ranges = len({r.get("train_look") for r in summary["agents"]}) > 1
+  ranges = _several_ranges(summary)
   groups: dict[str, list[dict]] = {}
   for r in summary["agents"]:
     groups.setdefault(_label(r) + (f", {r['train_look']}" if ranges else ""), []).append(r)
@@ -397,7 +402,7 @@ def markdown(summary: dict) -> str:
     cells += [f"{row[c]:.1f}" if c in row else "–" for c in conditions]
     return "| " + " | ".join(cells + [pct(g["paper"]["e_g"].get(last))]) + " |"
 
-  ranges = len({r.get("train_look") for r in summary["agents"]}) > 1
+  ranges = _several_ranges(summary)
   for r in summary["agents"]:
     means = {c: r["conditions"][c]["mean"] for c in conditions}
     label = f"seed {r['seed']}, {_label(r)}" + (f", {r['train_look']}" if ranges else "")

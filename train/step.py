@@ -158,6 +158,11 @@ def act(learner: Learner, obs: jax.Array, spec: StepSpec, mesh=None):
   return learner.replace(key=key, step=learner.step + n), action, env_action
 
 
+def _first_update(spec: StepSpec, updates_from):
+  """`updates_from`, or the warm-up when None (`owed_updates`)."""
+  return spec.warmup_steps if updates_from is None else updates_from
+
+
 def owed_updates(owed, step, spec: StepSpec, xp=np, updates_from=None):
   """Updates owed once the N / G transitions of the step at `step` are collected.
 
@@ -173,7 +178,7 @@ def owed_updates(owed, step, spec: StepSpec, xp=np, updates_from=None):
   Returns:
     (owed including this step's, update pairs that can run now: ⌊owed / 2⌋).
   """
-  start = spec.warmup_steps if updates_from is None else updates_from
+  start = _first_update(spec, updates_from)
   after = step + spec.step_envs
   new = spec.utd * (after - xp.maximum(step, start))
   owed = xp.where(after > start, owed + xp.float32(new), owed)
@@ -200,7 +205,7 @@ def plan_updates(owed, ready, step, can_sample_now, spec: StepSpec, xp=np,
     learning starts and the buffers can be sampled; owed updates wait till then).
   """
   owed, pairs = owed_updates(owed, step, spec, xp, updates_from)
-  start = spec.warmup_steps if updates_from is None else updates_from
+  start = _first_update(spec, updates_from)
   learning = step + spec.step_envs > start
   if xp is np:
     ready = ready or (learning and bool(can_sample_now()))
