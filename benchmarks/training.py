@@ -42,7 +42,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import datetime
 import os
 import shutil
 import sys
@@ -149,7 +148,7 @@ def run(train_argv: list[str], threshold: float, run_dir: str, baseline: bool = 
       host_seconds=summary.get("host_seconds"), env_seconds=summary.get("env_seconds"),
       steady=summary.get("steady"),
       train_args=list(train_argv), run_dir=run_dir,
-      time_utc=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"))
+      time_utc=R.utc_now())
 
 
 def check_device_counts(text: str, cfg) -> list[int]:
