@@ -25,7 +25,7 @@ converges, while MJX runs it as a fixed-length scan whose every step costs the
 same under `vmap`, so the cap bounds the cost of every physics step. It lies above
 the most cost evaluations dm_control's line search uses in random episodes of
 every task, so trajectories stay close to those of the uncapped search and
-their drift from dm_control is unchanged (`benchmarks.solver_budget`; results in
+their drift from dm_control is unchanged (`dmcr_jax.benchmarks.solver_budget`; results in
 benchmarks/results/solver_budget_*.md). `load(name, solver_iterations=...,
 ls_iterations=...)` overrides either budget; smaller solver budgets are faster but
 do drift (mjx.benchmark's 1 / 4 makes walker diverge).
@@ -39,7 +39,7 @@ orders of magnitude more than float32 does; the drift and the speed of both
 precisions: benchmarks/results/solver_budget_h100.md, physics_h100_precision.md. Networks
 and other callers keep their own precision. `physics_matmul_precision(...)` sets
 another precision for physics traced inside it (for measuring this:
-`benchmarks.solver_budget --precisions`, `benchmarks.physics --matmul-precision`).
+`dmcr_jax.benchmarks.solver_budget --precisions`, `dmcr_jax.benchmarks.physics --matmul-precision`).
 
 Non-finite actions: `step` cannot raise inside `jit`, so NaN entries become 0 and
 ±inf become the nearest bound (after `jnp.nan_to_num` and clipping); the
@@ -134,6 +134,28 @@ class TaskSpec:
   def name(self) -> str:
     return f"{self.domain}-{self.task}"
 
+
+
+def task_variants(variants: Mapping[str, Mapping[str, Mapping[str, Any]]],
+                  **common: Any) -> dict[str, TaskSpec]:
+  """The tasks of a domain that differ only in arguments of the same functions.
+
+  dm_control builds such tasks from one task class with constructor arguments
+  (walker's `move_speed`, cartpole's `swing_up` and `sparse`). Here every task is
+  `TaskSpec(task=name, **common)` with, for each field its entry names, that
+  field's function given those keyword arguments (`functools.partial`).
+
+  Args:
+    variants: {task name: {field ("initialize", "observation" or "reward"):
+      {keyword: value}}}; an empty entry takes `common` as it is.
+    **common: the `TaskSpec` fields the tasks share (all but `task`).
+
+  Returns:
+    {task name: TaskSpec}, in the order of `variants`.
+  """
+  return {task: TaskSpec(task=task, **{
+      **common, **{f: functools.partial(common[f], **kw) for f, kw in bound.items()}})
+          for task, bound in variants.items()}
 
 def load_mj_model(spec: TaskSpec) -> mujoco.MjModel:
   """Compiles dm_control's suite MJCF for `spec.domain` and applies MJX fixes.

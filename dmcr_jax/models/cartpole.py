@@ -11,12 +11,11 @@ computes diagnostics only.
 
 from __future__ import annotations
 
-import functools
 
 import jax
 import jax.numpy as jnp
 
-from dmcr_jax.models.base import TaskSpec
+from dmcr_jax.models.base import task_variants
 from dmcr_jax.models.rewards import tolerance
 
 _CART_RANGE = (-.25, .25)
@@ -64,18 +63,10 @@ def _reward(m, d, info, sparse: bool):
   return upright.mean() * small_control * small_velocity * centered
 
 
-def _spec(task: str, swing_up: bool, sparse: bool) -> TaskSpec:
-  return TaskSpec(
-      domain="cartpole", task=task,
-      initialize=functools.partial(_initialize, swing_up=swing_up),
-      observation=_observation,
-      reward=functools.partial(_reward, sparse=sparse),
-      control_timestep=None, time_limit=_TIME_LIMIT)
-
-
-TASKS = {
-    "balance": _spec("balance", swing_up=False, sparse=False),
-    "balance_sparse": _spec("balance_sparse", swing_up=False, sparse=True),
-    "swingup": _spec("swingup", swing_up=True, sparse=False),
-    "swingup_sparse": _spec("swingup_sparse", swing_up=True, sparse=True),
-}
+TASKS = task_variants(
+    {"balance": {"initialize": dict(swing_up=False), "reward": dict(sparse=False)},
+     "balance_sparse": {"initialize": dict(swing_up=False), "reward": dict(sparse=True)},
+     "swingup": {"initialize": dict(swing_up=True), "reward": dict(sparse=False)},
+     "swingup_sparse": {"initialize": dict(swing_up=True), "reward": dict(sparse=True)}},
+    domain="cartpole", initialize=_initialize, observation=_observation, reward=_reward,
+    control_timestep=None, time_limit=_TIME_LIMIT)

@@ -15,12 +15,11 @@ No deviation from dm_control; the only model edit is the `energy` flag.
 from __future__ import annotations
 
 import collections
-import functools
 
 import jax.numpy as jnp
 
 from dmcr_jax.models import names, randomizers
-from dmcr_jax.models.base import TaskSpec
+from dmcr_jax.models.base import task_variants
 from dmcr_jax.models.rewards import tolerance
 
 _CONTROL_TIMESTEP = .02
@@ -43,11 +42,6 @@ def _touch(m, d):
       [names.sensor(m, d, "touch_toe"), names.sensor(m, d, "touch_heel")]))
 
 
-def _initialize(key, m, d):
-  qpos = randomizers.randomize_limited_and_rotational_joints(key, m, d.qpos)
-  return d.replace(qpos=qpos), {}
-
-
 def _observation(m, d, info):
   del info
   return collections.OrderedDict(
@@ -68,15 +62,9 @@ def _reward(m, d, info, hopping: bool):
   return standing * small_control
 
 
-def _spec(task: str, hopping: bool) -> TaskSpec:
-  return TaskSpec(
-      domain="hopper", task=task, initialize=_initialize,
-      observation=_observation,
-      reward=functools.partial(_reward, hopping=hopping),
-      control_timestep=_CONTROL_TIMESTEP, time_limit=_DEFAULT_TIME_LIMIT)
-
-
-TASKS = {
-    "stand": _spec("stand", hopping=False),
-    "hop": _spec("hop", hopping=True),
-}
+TASKS = task_variants(
+    {"stand": {"reward": dict(hopping=False)},
+     "hop": {"reward": dict(hopping=True)}},
+    domain="hopper", initialize=randomizers.initialize_randomized_joints,
+    observation=_observation, reward=_reward,
+    control_timestep=_CONTROL_TIMESTEP, time_limit=_DEFAULT_TIME_LIMIT)

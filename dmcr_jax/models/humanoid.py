@@ -19,7 +19,6 @@ model edit is the `energy` flag.
 from __future__ import annotations
 
 import collections
-import functools
 
 import jax.numpy as jnp
 import mujoco
@@ -27,7 +26,7 @@ import numpy as np
 
 from dmcr_jax.models import names, randomizers
 from dmcr_jax.models.ball_in_cup import rejection_sample
-from dmcr_jax.models.base import TaskSpec
+from dmcr_jax.models.base import task_variants
 from dmcr_jax.models.rewards import tolerance
 
 _DEFAULT_TIME_LIMIT = 25.0
@@ -106,16 +105,9 @@ def _reward(m, d, info, move_speed: float):
   return small_control * stand_reward * move
 
 
-def _spec(task: str, move_speed: float) -> TaskSpec:
-  return TaskSpec(
-      domain="humanoid", task=task, initialize=_initialize,
-      observation=_observation,
-      reward=functools.partial(_reward, move_speed=move_speed),
-      control_timestep=_CONTROL_TIMESTEP, time_limit=_DEFAULT_TIME_LIMIT)
-
-
-TASKS = {
-    "stand": _spec("stand", 0.0),
-    "walk": _spec("walk", _WALK_SPEED),
-    "run": _spec("run", _RUN_SPEED),
-}
+TASKS = task_variants(
+    {"stand": {"reward": dict(move_speed=0.0)},
+     "walk": {"reward": dict(move_speed=_WALK_SPEED)},
+     "run": {"reward": dict(move_speed=_RUN_SPEED)}},
+    domain="humanoid", initialize=_initialize, observation=_observation, reward=_reward,
+    control_timestep=_CONTROL_TIMESTEP, time_limit=_DEFAULT_TIME_LIMIT)

@@ -43,3 +43,10 @@ def randomize_limited_and_rotational_joints(key: jax.Array, m: mjx.Model,
       q = jax.random.uniform(k, (4,))
       qpos = qpos.at[a + 3:a + 7].set(q / jnp.linalg.norm(q))
   return qpos
+
+
+def initialize_randomized_joints(key: jax.Array, m: mjx.Model,
+                                 d: mjx.Data) -> tuple[mjx.Data, dict]:
+  """A `TaskSpec.initialize` that only randomises the joints (walker's and
+  hopper's `initialize_episode`): (data with `qpos` drawn, empty info)."""
+  return d.replace(qpos=randomize_limited_and_rotational_joints(key, m, d.qpos)), {}

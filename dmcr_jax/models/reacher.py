@@ -14,13 +14,12 @@ the sum of their radii, else 0. No model edits beyond the shared `energy` flag.
 
 from __future__ import annotations
 
-import functools
 
 import jax
 import jax.numpy as jnp
 
 from dmcr_jax.models import names, randomizers
-from dmcr_jax.models.base import TaskSpec
+from dmcr_jax.models.base import task_variants
 
 _TIME_LIMIT = 20.0
 _BIG_TARGET = .05
@@ -60,16 +59,9 @@ def _reward(m, d, info):
   return jnp.where((dist >= 0) & (dist <= radii), 1.0, 0.0)
 
 
-def _spec(task: str, target_size: float) -> TaskSpec:
-  return TaskSpec(
-      domain="reacher", task=task,
-      initialize=functools.partial(_initialize, target_size=target_size),
-      observation=_observation, reward=_reward,
-      control_timestep=None, time_limit=_TIME_LIMIT,
-      model_variables=(("geom_pos", "target"), ("geom_size", "target")))
-
-
-TASKS = {
-    "easy": _spec("easy", _BIG_TARGET),
-    "hard": _spec("hard", _SMALL_TARGET),
-}
+TASKS = task_variants(
+    {"easy": {"initialize": dict(target_size=_BIG_TARGET)},
+     "hard": {"initialize": dict(target_size=_SMALL_TARGET)}},
+    domain="reacher", initialize=_initialize, observation=_observation, reward=_reward,
+    control_timestep=None, time_limit=_TIME_LIMIT,
+    model_variables=(("geom_pos", "target"), ("geom_size", "target")))

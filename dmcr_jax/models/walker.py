@@ -14,10 +14,9 @@ No deviation from dm_control; the only model edit is the `energy` flag.
 from __future__ import annotations
 
 import collections
-import functools
 
 from dmcr_jax.models import names, randomizers
-from dmcr_jax.models.base import TaskSpec
+from dmcr_jax.models.base import task_variants
 from dmcr_jax.models.rewards import tolerance
 
 _DEFAULT_TIME_LIMIT = 25
@@ -37,11 +36,6 @@ def _torso_height(m, d):
 
 def _horizontal_velocity(m, d):
   return names.sensor(m, d, "torso_subtreelinvel")[0]
-
-
-def _initialize(key, m, d):
-  qpos = randomizers.randomize_limited_and_rotational_joints(key, m, d.qpos)
-  return d.replace(qpos=qpos), {}
 
 
 def _observation(m, d, info):
@@ -67,16 +61,10 @@ def _reward(m, d, info, move_speed: float):
   return stand_reward * (5 * move_reward + 1) / 6
 
 
-def _spec(task: str, move_speed: float) -> TaskSpec:
-  return TaskSpec(
-      domain="walker", task=task, initialize=_initialize,
-      observation=_observation,
-      reward=functools.partial(_reward, move_speed=move_speed),
-      control_timestep=_CONTROL_TIMESTEP, time_limit=_DEFAULT_TIME_LIMIT)
-
-
-TASKS = {
-    "stand": _spec("stand", 0),
-    "walk": _spec("walk", _WALK_SPEED),
-    "run": _spec("run", _RUN_SPEED),
-}
+TASKS = task_variants(
+    {"stand": {"reward": dict(move_speed=0)},
+     "walk": {"reward": dict(move_speed=_WALK_SPEED)},
+     "run": {"reward": dict(move_speed=_RUN_SPEED)}},
+    domain="walker", initialize=randomizers.initialize_randomized_joints,
+    observation=_observation, reward=_reward,
+    control_timestep=_CONTROL_TIMESTEP, time_limit=_DEFAULT_TIME_LIMIT)
