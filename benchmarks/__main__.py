@@ -1,12 +1,12 @@
-"""`python -m benchmarks`: run the benchmark suite (see `benchmarks.suite`).
+"""`python -m dmcr_jax.benchmarks`: run the benchmark suite (see `dmcr_jax.benchmarks.suite`).
 
-    python -m benchmarks --quick --out /tmp/suite_quick   # a few minutes on 2 CPU cores
-    python -m benchmarks                                  # the full sizes (GPU machine)
-    python -m benchmarks --only physics,env --dry-run     # the commands it would run
+    python -m dmcr_jax.benchmarks --quick --out /tmp/suite_quick   # a few minutes on 2 CPU cores
+    python -m dmcr_jax.benchmarks                                  # the full sizes (GPU machine)
+    python -m dmcr_jax.benchmarks --only physics,env --dry-run     # the commands it would run
 """
 
 import sys
 
-from benchmarks.suite import main
+from dmcr_jax.benchmarks.suite import main
 
 sys.exit(main())

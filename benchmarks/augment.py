@@ -14,7 +14,7 @@ One JSON line per augmentation goes to ``--out`` (default
 
 Usage::
 
-    python -m benchmarks.augment [--batch 256] [--out PATH] [--names drq,cj+drq]
+    python -m dmcr_jax.benchmarks.augment [--batch 256] [--out PATH] [--names drq,cj+drq]
                                  [--aug package.module:function]
 """
 
@@ -27,7 +27,7 @@ import time
 import jax
 import numpy as np
 
-from benchmarks import rows as R
+from dmcr_jax.benchmarks import rows as R
 from dmcr_jax import augment
 
 

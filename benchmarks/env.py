@@ -19,9 +19,9 @@ shows visual seed i + 1), it measures in one run:
   alone, and the device→host copy of the observations (`env.timings`). The two
   parts run fused in `env.step`, so their sum only approximates its time.
 
-    python -m benchmarks.env --sizes 1,16,256,1024 --qualities exact,fast,fastest \
+    python -m dmcr_jax.benchmarks.env --sizes 1,16,256,1024 --qualities exact,fast,fastest \
         --out benchmarks/results/env_h100.jsonl
-    python -m benchmarks.env --sizes 1024 --renderers pool,jax --ls-iterations 4 \
+    python -m dmcr_jax.benchmarks.env --sizes 1024 --renderers pool,jax --ls-iterations 4 \
         --no-copy --out benchmarks/results/env_h100.jsonl
 
 One JSON line per row and a Markdown table beside the JSONL file.
@@ -38,7 +38,7 @@ import time
 import numpy as np
 
 import dmcr_jax  # first: picks a headless MUJOCO_GL before dm_control reads it
-from benchmarks import rows as R
+from dmcr_jax.benchmarks import rows as R
 from dmcr_jax.env import check_renderer_name
 
 
@@ -278,9 +278,9 @@ def main(argv=None) -> None:
     R.emit(row, args.out)
   print(markdown(rows))
   if args.out:
-    R.write_markdown(args.out, f"Rows of `python -m benchmarks.env` runs appended to "
+    R.write_markdown(args.out, f"Rows of `python -m dmcr_jax.benchmarks.env` runs appended to "
                      f"`{os.path.basename(args.out)}` (each row holds its device, settings "
-                     f"and UTC time); the last: `python -m benchmarks.env {' '.join(argv)}` "
+                     f"and UTC time); the last: `python -m dmcr_jax.benchmarks.env {' '.join(argv)}` "
                      f"on {device} with {os.cpu_count()} cores. The original pipeline "
                      "rebuilds the model with `suite.load` (no texture edits).\n\n"
                      + markdown(R.read(args.out)))

@@ -4,12 +4,12 @@ The GPU machine returns at most a few files of 16 MiB, and a full checkpoint
 (optimizer states, critics, targets) is ~80 MB per agent. `export` writes one
 `<dest>/agent<i>.msgpack` per agent of a `train` run (flax serialization of
 ``{"encoder": …, "actor": …}``, float32, ~12 MB) plus its config.json; `import`
-rebuilds a run folder from them that `evaluate` and `train.analysis` accept. The
+rebuilds a run folder from them that `evaluate` and `dmcr_jax.train.analysis` accept. The
 imported agents' critics, targets and optimizer states are fresh, so such a run is
 for evaluation only, not for `--resume`.
 
-    python -m benchmarks.export_params export RUN_DIR DEST
-    python -m benchmarks.export_params import DEST NEW_RUN_DIR
+    python -m dmcr_jax.benchmarks.export_params export RUN_DIR DEST
+    python -m dmcr_jax.benchmarks.export_params import DEST NEW_RUN_DIR
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ import flax.serialization
 import jax
 import jax.numpy as jnp
 
-from train import loop
+from dmcr_jax.train import loop
 
 
 def export(run_dir: str, dest: str) -> int:

@@ -18,12 +18,12 @@ first step) and agent-steps/s (N pixel observations, rewards and auto-resets per
 agent step) two ways: `env.step` in a host loop (one jitted call per step, the
 observations left on the device, `info` fetched to the host) and the pure
 `PixelEnv.step` scanned `--scan-steps` times in one jitted call (how
-`train.device_loop` drives it: no host work between steps), each the median of
+`dmcr_jax.train.device_loop` drives it: no host work between steps), each the median of
 `--repeats` timed runs of `--steps` (resp. `--scan-steps`) steps.
 
-    python -m benchmarks.jax_render --batches 1024,4096,16384 --chunk 256 \\
+    python -m dmcr_jax.benchmarks.jax_render --batches 1024,4096,16384 --chunk 256 \\
         --out benchmarks/results/jax_render_h100.jsonl
-    python -m benchmarks.jax_render --mode env --batches 1024,4096,16384 --chunk 256 \\
+    python -m dmcr_jax.benchmarks.jax_render --mode env --batches 1024,4096,16384 --chunk 256 \\
         --out benchmarks/results/jax_env_h100.jsonl
 
 `--mode check`: the fused GPU kernel's frames (`jax_render_kernel`) against the
@@ -46,7 +46,7 @@ import time
 
 import numpy as np
 
-from benchmarks import rows as R
+from dmcr_jax.benchmarks import rows as R
 
 
 def _device() -> str:
@@ -316,7 +316,7 @@ def main(argv=None) -> None:
     table = markdown_env(rows) if env_mode else markdown(rows)
   print(table)
   if args.out:
-    R.write_markdown(args.out, f"`python -m benchmarks.jax_render {' '.join(argv)}`\n\n{table}")
+    R.write_markdown(args.out, f"`python -m dmcr_jax.benchmarks.jax_render {' '.join(argv)}`\n\n{table}")
 
 
 if __name__ == "__main__":

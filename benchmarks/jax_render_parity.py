@@ -6,7 +6,7 @@ absolute pixel difference over dm_control states × visual seeds.
 (RGB and body ids); `parity_row` summarises one domain as a JSON row and
 `parity_markdown` tabulates rows.
 
-    python -m benchmarks.jax_render_parity [--compare DOMAIN …] --seeds 100 --states 3 \\
+    python -m dmcr_jax.benchmarks.jax_render_parity [--compare DOMAIN …] --seeds 100 --states 3 \\
         --out docs/ [--json FILE] [--worst N]
 
 writes docs/jax_render_parity.png (MuJoCo | JAX | 3×|diff|) and prints, per domain,
@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks import rows as R
+from dmcr_jax.benchmarks import rows as R
 from dmcr_jax.visuals.jax_render import (build_scene, device_looks, poses, render,
                                          render_with_ids)
 
@@ -182,7 +182,7 @@ def parity_markdown(rows: Sequence[dict]) -> str:
 
 
 def main(argv=None) -> None:
-  """`python -m benchmarks.jax_render_parity --compare DOMAIN … --seeds N --out DIR`."""
+  """`python -m dmcr_jax.benchmarks.jax_render_parity --compare DOMAIN … --seeds N --out DIR`."""
   import argparse
   import json
   import os
@@ -231,7 +231,7 @@ def main(argv=None) -> None:
     with open(args.json) as f:
       table = parity_markdown([json.loads(line) for line in f if line.strip()])
     with open(os.path.splitext(args.json)[0] + ".md", "w") as f:
-      f.write(f"Rows of `python -m benchmarks.jax_render_parity --json {args.json}` (the "
+      f.write(f"Rows of `python -m dmcr_jax.benchmarks.jax_render_parity --json {args.json}` (the "
               "JSONL beside this file holds each row's settings, platform and time): the "
               "ray caster against `mujoco.Renderer` at visual seeds 0 … seeds − 1 × "
               "dm_control states (`dm_states`); IoU of each body's silhouette against "

@@ -1,6 +1,6 @@
 """Benchmark of the learner (SAC+AUG, CURL, SAC+AE): gradient updates per second.
 
-Times exactly what `train` runs: `train.step.learn_jit`, a jitted call that loops
+Times exactly what `train` runs: `dmcr_jax.train.step.learn_jit`, a jitted call that loops
 ``--pairs`` `sac.update_pair`s (two updates each, actor and targets on the
 second) for K agents, each sampling its own batches from its own full device
 replay buffer (random 84×84 frames, 3-frame stacks rebuilt at sampling, as in
@@ -8,7 +8,7 @@ training), with the paper's defaults (batch 256, DrQ augmentation, β = .9,
 λ = 1e-5). Each row varies the number of agents K, the compute dtype (float32,
 bfloat16), how the agents are batched (``vmap``: one batched computation,
 ``map``: one after the other inside the call) and, with ``--algos``, the
-algorithm (`train.sac.ALGOS`; each at its own defaults: CURL samples 100×100
+algorithm (`dmcr_jax.train.sac.ALGOS`; each at its own defaults: CURL samples 100×100
 frames and crops them to 84, SAC+AE uses batch 128 unless ``--batch`` is given). The baseline measured in the same
 run is a plain Python loop over one jitted `sac.update` per gradient step (one
 agent, float32, batch sampled in the same call), i.e. one host dispatch per update
@@ -32,7 +32,7 @@ efficiency: its agent-updates/s over D times those of the same row on one device
 
 Usage::
 
-    python -m benchmarks.learner [--agents 1,8] [--dtypes float32,bfloat16] \\
+    python -m dmcr_jax.benchmarks.learner [--agents 1,8] [--dtypes float32,bfloat16] \\
         [--loops vmap,map] [--algos sac_aug,curl,sac_ae] [--augs drq,cj+drq] [--batch 256] \\
         [--pairs 25] [--stage-inputs on,off] [--devices 1,2,4,8] [--out PATH]
 """
@@ -50,9 +50,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks import rows as R
-from train import loop, replay, sac
-from train import step as train_step
+from dmcr_jax.benchmarks import rows as R
+from dmcr_jax.train import loop, replay, sac
+from dmcr_jax.train import step as train_step
 
 
 def filled_buffers(k: int, capacity: int, size: int, stack: int, action_size: int,
@@ -124,14 +124,14 @@ def scanned_workload(k: int = 1, dtype: str = "float32", agent_loop: str = "vmap
                      stack: int = 3, action_size: int = 6, capacity: int = 10_000,
                      algo: str = "sac_aug", aug: str | None = None,
                      stage_inputs: bool = True, devices: int = 1):
-  """`train.step.learn_jit` for K agents on full random buffers, ready to call repeatedly.
+  """`dmcr_jax.train.step.learn_jit` for K agents on full random buffers, ready to call repeatedly.
 
   `batch` None takes the algorithm's default; for CURL the frames are rendered
   ``curl_crop + 16`` pixels (`size` is the encoder's input). `aug` None takes
   the algorithm's default augmentation (SAC+AUG: DrQ). `stage_inputs` is
   `sac.SACConfig.stage_inputs`. `devices`: the agents and their buffers are
   sharded over that many local devices, as `train` shards them
-  (`train.loop.agent_mesh`; it must divide K).
+  (`dmcr_jax.train.loop.agent_mesh`; it must divide K).
 
   Returns:
     (call, config, frame side): ``call()`` runs `pairs` update pairs of every
@@ -157,7 +157,7 @@ def scanned_workload(k: int = 1, dtype: str = "float32", agent_loop: str = "vmap
   def call():
     learner[0] = update(learner[0])   # donated: the buffers pass through unchanged
     return learner[0].agents
-  # The compiled module (its text for benchmarks.profile --by source, its cost for
+  # The compiled module (its text for dmcr_jax.benchmarks.profile --by source, its cost for
   # --cost); compiles again.
   call.compiled = lambda: train_step.learn_jit.lower(learner[0], **update.keywords).compile()
   call.hlo_text = lambda: call.compiled().as_text()
@@ -168,7 +168,7 @@ def bench_scanned(k: int, dtype: str, agent_loop: str, batch: int | None, pairs:
                   size: int, stack: int, action_size: int, capacity: int, seconds: float,
                   algo: str = "sac_aug", aug: str | None = None,
                   stage_inputs: bool = True, devices: int = 1) -> dict:
-  """Updates/s of `train.step.learn_jit` for K agents sharded over `devices` local
+  """Updates/s of `dmcr_jax.train.step.learn_jit` for K agents sharded over `devices` local
   devices (`scanned_workload`); one result row."""
   call, config, size = scanned_workload(k, dtype, agent_loop, batch, pairs, size, stack,
                                         action_size, capacity, algo, aug, stage_inputs,
@@ -378,9 +378,9 @@ def main(argv=None) -> None:
                  baseline=PYTHON_LOOP if baseline and not own else None,
                  baseline_throughput=None if own else baseline, is_baseline=own), out)
   rows = R.read(out)
-  R.write_markdown(out, f"Rows of `python -m benchmarks.learner` (see its docstring), "
+  R.write_markdown(out, f"Rows of `python -m dmcr_jax.benchmarks.learner` (see its docstring), "
                    f"appended to `{os.path.basename(out)}`; the last run: `python -m "
-                   f"benchmarks.learner {' '.join(sys.argv[1:] if argv is None else argv)}` "
+                   f"dmcr_jax.benchmarks.learner {' '.join(sys.argv[1:] if argv is None else argv)}` "
                    f"({os.cpu_count()} cores). Updates/s count gradient updates (critic every "
                    "update; actor, α and targets every second one).\n\n" + markdown(rows))
   print(markdown(rows))

@@ -1,6 +1,6 @@
 """Which side of the renderer-parity check a machine changes: MuJoCo's or the ray caster's.
 
-`dump` renders the parity check's frames (`benchmarks.jax_render_parity.compare`:
+`dump` renders the parity check's frames (`dmcr_jax.benchmarks.jax_render_parity.compare`:
 dm_control states × visual seeds) and saves, per domain, MuJoCo's segmentation
 (body ids) and the ray caster's body ids, and optionally both RGB frames, to an
 `.npz`. `compare` reads two dumps made on different machines (say the CPU
@@ -9,9 +9,9 @@ domain, the body-id pixels in which each side changed between them (and how many
 of MuJoCo's lie on a silhouette edge), next to each machine's own count of
 pixels where the two renderers disagree.
 
-    MUJOCO_GL=egl python -m benchmarks.parity_ids dump --domains walker,humanoid \\
+    MUJOCO_GL=egl python -m dmcr_jax.benchmarks.parity_ids dump --domains walker,humanoid \\
         --seeds 25 --states 3 --out parity_ids_cpu.npz
-    python -m benchmarks.parity_ids compare parity_ids_cpu.npz parity_ids_h100.npz
+    python -m dmcr_jax.benchmarks.parity_ids compare parity_ids_cpu.npz parity_ids_h100.npz
 """
 
 from __future__ import annotations
@@ -21,12 +21,12 @@ import sys
 
 import numpy as np
 
-from benchmarks import rows as R
+from dmcr_jax.benchmarks import rows as R
 
 
 def dump(domains: list[str], seeds: int, states: int, out: str, rgb: bool = False) -> None:
   """Saves `compare`'s body ids (int8, (frames, H, W)) per domain to `out`."""
-  from benchmarks import jax_render_parity
+  from dmcr_jax.benchmarks import jax_render_parity
   arrays = {}
   for domain in domains:
     res = jax_render_parity.compare(domain, range(seeds), states=states)

@@ -7,12 +7,12 @@ post-step sync, observation and reward), and, in the same run, a bare vmapped
 substeps: N × K × n_sub_steps / run time. Compile time is measured apart (lower +
 compile), run time is the median of `--repeats` calls after `block_until_ready`.
 
-    python -m benchmarks.physics --tasks walker-walk --sizes 1,64,1024,8192
-    python -m benchmarks.physics --tasks all --out benchmarks/results/physics_h100.jsonl
+    python -m dmcr_jax.benchmarks.physics --tasks walker-walk --sizes 1,64,1024,8192
+    python -m dmcr_jax.benchmarks.physics --tasks all --out benchmarks/results/physics_h100.jsonl
 
-    python -m benchmarks.physics --tasks walker-walk --sizes 8192 \
+    python -m dmcr_jax.benchmarks.physics --tasks walker-walk --sizes 8192 \
         --solver-iterations 1 --ls-iterations 4   # mjx.benchmark's solver budget
-    python -m benchmarks.physics --tasks walker-walk --sizes 8192 \
+    python -m dmcr_jax.benchmarks.physics --tasks walker-walk --sizes 8192 \
         --matmul-precision default   # JAX's precision: TensorFloat-32 products on an H100
 
 Each row is one JSON line (device kind, task, N, steps, solver budget, compile_s,
@@ -34,7 +34,7 @@ from concurrent.futures import ThreadPoolExecutor
 import jax
 from mujoco import mjx
 
-from benchmarks import rows as R
+from dmcr_jax.benchmarks import rows as R
 from dmcr_jax import models
 from dmcr_jax.models import base
 
@@ -213,7 +213,7 @@ def _run(args) -> None:
       rows.append(row)
   if args.out:
     rows = R.read(args.out)
-    R.write_markdown(args.out, "Rows from `python -m benchmarks.physics` runs appended to "
+    R.write_markdown(args.out, "Rows from `python -m dmcr_jax.benchmarks.physics` runs appended to "
                      f"`{os.path.basename(args.out)}` (each row holds its device and "
                      "settings).\n\n" + markdown(rows))
   print(markdown(rows))

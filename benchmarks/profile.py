@@ -13,8 +13,8 @@ stand in (the rows are then host-side op events, coarse but enough for tests).
 
 The command profiles the two workloads the open speed targets are about:
 
-    python -m benchmarks.profile render --batch 1024 --chunk 1024 --out $OUT/prof
-    python -m benchmarks.profile learner --dtype bfloat16 --out $OUT/prof
+    python -m dmcr_jax.benchmarks.profile render --batch 1024 --chunk 1024 --out $OUT/prof
+    python -m dmcr_jax.benchmarks.profile learner --dtype bfloat16 --out $OUT/prof
 
 Each writes ``summary.md`` (the top `--top` rows) and ``summary.json`` into --out
 beside the raw trace, and prints the table. ``--trace-dir`` puts the trace
@@ -41,7 +41,7 @@ import tempfile
 import time
 from typing import Any, Callable, Sequence
 
-from benchmarks import rows as R
+from dmcr_jax.benchmarks import rows as R
 
 HOST_THREAD_PREFIXES = ("tf_XLA",)
 """Thread-name prefixes of XLA's CPU worker threads (used when no device is traced)."""
@@ -205,10 +205,10 @@ def profile_call(call: Callable[[], Any], out_dir: str, calls: int = 3) -> str:
 
 
 def render_workload(task: str, batch: int, chunk: int, size: int) -> Callable[[], Any]:
-  """``call()`` rendering `batch` envs of `task` (`benchmarks.jax_render`'s render mode)."""
+  """``call()`` rendering `batch` envs of `task` (`dmcr_jax.benchmarks.jax_render`'s render mode)."""
   import functools
   import jax
-  from benchmarks.jax_render import inputs
+  from dmcr_jax.benchmarks.jax_render import inputs
   from dmcr_jax.visuals import jax_render as JR
   scene, bp, looks = inputs(task, batch)
   fn = jax.jit(functools.partial(JR.render_batch, scene, chunk=chunk or None,
@@ -260,7 +260,7 @@ def main(argv=None) -> None:
     call = render_workload(args.task, args.batch or 1024, args.chunk, args.size)
     what = f"render_batch, {args.task}, N = {args.batch or 1024}, {args.size}×{args.size}"
   else:
-    from benchmarks.learner import scanned_workload
+    from dmcr_jax.benchmarks.learner import scanned_workload
     call, _, _ = scanned_workload(dtype=args.dtype, batch=args.batch or 256,
                                   pairs=args.pairs, size=args.size,
                                   stage_inputs=args.stage_inputs)
@@ -289,7 +289,7 @@ def main(argv=None) -> None:
                  trace=kept,
                  time_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
   table = markdown(summary, f"{what} on {device}, {args.calls} calls "
-                            f"(`python -m benchmarks.profile {' '.join(argv)}`)")
+                            f"(`python -m dmcr_jax.benchmarks.profile {' '.join(argv)}`)")
   with open(os.path.join(args.out, "summary.json"), "w") as f:
     json.dump(summary, f, indent=1)
   with open(os.path.join(args.out, "summary.md"), "w") as f:

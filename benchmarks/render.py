@@ -9,7 +9,7 @@ and random states, it measures, in one run:
   With the exact preset, 16 frames spread over the batch are compared with the
   single-frame reference renderer (`reference_equal`: how many are bit-identical).
 
-    python -m benchmarks.render --batches 64,256,1024,4096 --workers 1,4,8,16 \
+    python -m dmcr_jax.benchmarks.render --batches 64,256,1024,4096 --workers 1,4,8,16 \
         --qualities exact,fast,fastest --out benchmarks/results/render_h100.jsonl
 
 One JSON line per row (device, GL backend, cpus, sizes, frames/s, speed-up over
@@ -27,7 +27,7 @@ import time
 
 import numpy as np
 
-from benchmarks import rows as R
+from dmcr_jax.benchmarks import rows as R
 
 
 def _inputs(rm, n: int, seed: int = 0):
@@ -122,7 +122,7 @@ def main(argv=None) -> None:
   table = markdown(rows)
   print(f"naive mujoco.Renderer loop: {base_fps:,.0f} frames/s\n{table}")
   if args.out:
-    R.write_markdown(args.out, f"`python -m benchmarks.render {' '.join(argv)}`\n\n"
+    R.write_markdown(args.out, f"`python -m dmcr_jax.benchmarks.render {' '.join(argv)}`\n\n"
                      f"Naive loop (one mujoco.Renderer, one process): {base_fps:,.0f} "
                      f"frames/s\n\n{table}")
 

@@ -14,7 +14,7 @@ pool from scaling with processes on a GPU:
 - `rawgl`: the per-frame GL calls through PyOpenGL's checked wrappers or its raw
   bindings (`OpenGL.raw.GL`: no `glGetError` after every call).
 
-    python -m benchmarks.render_variants --procs 1,16 --out benchmarks/results/render_variants_h100.jsonl
+    python -m dmcr_jax.benchmarks.render_variants --procs 1,16 --out benchmarks/results/render_variants_h100.jsonl
 """
 
 from __future__ import annotations
@@ -138,7 +138,7 @@ def main(argv=None) -> None:
   p.add_argument("--size", type=int, default=84)
   p.add_argument("--out", default=None)
   args = p.parse_args(argv)
-  from benchmarks.rows import gpu_name
+  from dmcr_jax.benchmarks.rows import gpu_name
   device = gpu_name() or "none"
   rows = []
   for procs in [int(x) for x in args.procs.split(",")]:

@@ -1,4 +1,4 @@
-"""The suite's report from rows in the one row format (`benchmarks.rows`): the
+"""The suite's report from rows in the one row format (`dmcr_jax.benchmarks.rows`): the
 headline, a table per benchmark, the jobs' status (`summary.md`) and a plot of
 throughput against N (`throughput.png`). Rows carry "benchmark" (one of
 `rows.BENCHMARKS`) besides the row format's fields.
@@ -9,8 +9,8 @@ from __future__ import annotations
 import math
 from typing import Iterable, Sequence
 
-from benchmarks import rows as R
-from benchmarks.rows import BENCHMARKS
+from dmcr_jax.benchmarks import rows as R
+from dmcr_jax.benchmarks.rows import BENCHMARKS
 
 HEADLINE = {
     "physics": ("physics steps/s", lambda r: r["variant"]),

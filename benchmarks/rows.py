@@ -2,7 +2,7 @@
 
 Every benchmark appends JSON lines to its ``--out`` file. A line holds the
 benchmark's own fields (task, sizes, its own rates) and the suite's fields
-(`FIELDS`), which `benchmarks.suite` reads as they are:
+(`FIELDS`), which `dmcr_jax.benchmarks.suite` reads as they are:
 
 - variant: what tells the row's line in a plot apart ("fastest", "K=8 bfloat16 map");
 - n: the size along the plot's x axis (envs, frames or images per call);

@@ -9,15 +9,15 @@ steps dm_control (float64, its own budget) and MJX under each budget with the
 same random actions for `--steps` control steps, and reports the largest
 |MJX − dm_control| over qpos, qvel, observation and reward (the measure of the
 trajectory-parity test), and its median over the start states (less swayed by
-one chaotic contact). Pair it with `benchmarks.physics --solver-iterations …
+one chaotic contact). Pair it with `dmcr_jax.benchmarks.physics --solver-iterations …
 --ls-iterations …` for the speed side.
 
 `--precisions` repeats every budget with the physics' matrix products at other
 precisions (`base.physics_matmul_precision`; the physics uses "highest", float32;
 on an H100, JAX's "default" lets XLA use TensorFloat-32, a 10-bit mantissa).
 
-    python -m benchmarks.solver_budget --tasks walker-walk --budgets -/50,default,-/8,4/8,1/4
-    python -m benchmarks.solver_budget --tasks walker-walk --budgets default \
+    python -m dmcr_jax.benchmarks.solver_budget --tasks walker-walk --budgets -/50,default,-/8,4/8,1/4
+    python -m dmcr_jax.benchmarks.solver_budget --tasks walker-walk --budgets default \
         --precisions highest,default
 """
 
@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from mujoco import mjx
 
-from benchmarks import rows as R
+from dmcr_jax.benchmarks import rows as R
 from dmcr_jax import models
 from dmcr_jax.models import base
 from tests import dmc_reference
@@ -176,9 +176,9 @@ def main(argv=None) -> None:
   print(text)
   if args.out:
     with open(os.path.splitext(args.out)[0] + ".md", "w") as f:
-      f.write(f"Rows of `python -m benchmarks.solver_budget` runs appended to "
+      f.write(f"Rows of `python -m dmcr_jax.benchmarks.solver_budget` runs appended to "
               f"`{os.path.basename(args.out)}`; the last: "
-              f"`python -m benchmarks.solver_budget {' '.join(argv)}`.\n\n"
+              f"`python -m dmcr_jax.benchmarks.solver_budget {' '.join(argv)}`.\n\n"
               "Mid-episode states × control steps (in each row), float32 MJX against "
               "float64 dm_control (largest, and the median over start states of each state's "
               "largest), and against MJX under the first budget (and matmul precision) run "

@@ -1,6 +1,6 @@
 """Where the time of one agent step goes: env parts, acting, buffer insert, updates.
 
-One agent step of the training loop (`train.loop`) at N envs is: the env step of
+One agent step of the training loop (`dmcr_jax.train.loop`) at N envs is: the env step of
 all N envs — physics (the jitted batched step, frame skip included), the
 device→host transfer of what rendering needs, rendering (the render workers also
 build the frame stacks), the copy of the stacked observations out of shared
@@ -20,11 +20,11 @@ frame skip 2 with every visual factor varying:
   median of `--reps` calls ended by `block_until_ready`, compile apart;
 - update: `--pairs` × `sac.update_pair` in one jitted `lax.scan` (two updates
   each, two batches sampled from a full buffer of the same N and capacity, as
-  `train.loop._update` does; unrolled on CPU, as the loop does there);
+  `dmcr_jax.train.loop._update` does; unrolled on CPU, as the loop does there);
   per-update ms = call time / (2·pairs); its share of an agent step =
   N·utd·per-update ms.
 
-    python -m benchmarks.step_profile --sizes 1024 --out benchmarks/results/step_profile_h100.jsonl
+    python -m dmcr_jax.benchmarks.step_profile --sizes 1024 --out benchmarks/results/step_profile_h100.jsonl
 
 One JSON line per N (device, settings, compile_s, parts_ms, shares, per-update
 ms, agent-steps/s of the env alone, with acting and insert ("collect"), and with
@@ -43,7 +43,7 @@ import time
 import numpy as np
 
 import dmcr_jax  # first: picks a headless MUJOCO_GL before dm_control reads it
-from benchmarks import rows as R
+from dmcr_jax.benchmarks import rows as R
 
 ENV_PARTS = ("physics", "transfer", "render", "copy", "env_other")
 """The env step's parts, as `env.timings` names them, plus the unaccounted rest."""
@@ -62,7 +62,7 @@ def breakdown(parts_ms: dict, num_envs: int) -> dict:
 
   Returns:
     total_ms, shares (part → fraction of the total), and agent-steps/s (one per
-    env and step, like `benchmarks.env`) of the env alone, of collecting (env,
+    env and step, like `dmcr_jax.benchmarks.env`) of the env alone, of collecting (env,
     obs_to_device, act, buffer_add) and of training (all parts).
   """
   env_ms = sum(parts_ms.get(p, 0.0) for p in ENV_PARTS)
@@ -153,7 +153,7 @@ def profile_learner(sample: dict, capacity: int, batch: int, dtype: str, pairs: 
   """
   import jax
   import jax.numpy as jnp
-  from train import replay, sac
+  from dmcr_jax.train import replay, sac
 
   obs, first, action, reward = (sample[k] for k in ("obs", "first", "action", "reward"))
   n, h, w, c = obs.shape
@@ -204,10 +204,10 @@ def profile_learner(sample: dict, capacity: int, batch: int, dtype: str, pairs: 
 
 
 def _updates(agent, buffer, key, pairs: int, config, unroll: bool):
-  """`pairs` × (two batches sampled, `sac.update_pair`), as `train.loop._update` runs
+  """`pairs` × (two batches sampled, `sac.update_pair`), as `dmcr_jax.train.loop._update` runs
   for one agent; returns the agent."""
   import jax
-  from train import replay, sac
+  from dmcr_jax.train import replay, sac
 
   def body(agent, k):
     k_sample, k_update = jax.random.split(k)
@@ -223,7 +223,7 @@ def filled_buffer(capacity: int, n: int, frame_shape: tuple, action_size: int, s
   """A full replay buffer of N envs with random frames and an episode every 125 rows."""
   import jax
   import jax.numpy as jnp
-  from train import replay
+  from dmcr_jax.train import replay
 
   empty = replay.init(capacity, n, frame_shape, action_size, stack)
   t = empty.ring_size
@@ -336,7 +336,7 @@ def main(argv=None) -> None:
   p.add_argument("--out", default=None, help="JSONL path (appended to); .md beside")
   a = p.parse_args(argv)
   from dmcr_jax.visuals.tiled import check_quality
-  from train import sac
+  from dmcr_jax.train import sac
   try:
     sizes = [int(s) for s in a.sizes.split(",")]
     dmcr_jax.models.split_name(a.task)
@@ -360,9 +360,9 @@ def main(argv=None) -> None:
     R.emit(row, a.out)
   if a.out:
     rows = R.read(a.out)
-    R.write_markdown(a.out, f"Rows of `python -m benchmarks.step_profile` (see its "
+    R.write_markdown(a.out, f"Rows of `python -m dmcr_jax.benchmarks.step_profile` (see its "
                      f"docstring) appended to `{os.path.basename(a.out)}`; the last run: "
-                     f"`python -m benchmarks.step_profile {' '.join(argv)}` "
+                     f"`python -m dmcr_jax.benchmarks.step_profile {' '.join(argv)}` "
                      f"({os.cpu_count()} cores).\n\n" + markdown(rows))
   print(markdown(rows))
 

@@ -1,18 +1,18 @@
-"""`python -m benchmarks`: every benchmark in one process tree, one JSONL, one summary.
+"""`python -m dmcr_jax.benchmarks`: every benchmark in one process tree, one JSONL, one summary.
 
 Each benchmark module of this package runs as a child process, one after the other
 (they would otherwise compete for the cores and the accelerator), each within a
 wall-clock limit; a child that fails or runs out of time is recorded and the others
-still run. A child appends rows in the one row format (`benchmarks.rows`) to
+still run. A child appends rows in the one row format (`dmcr_jax.benchmarks.rows`) to
 `<out>/raw/<job>.jsonl` (its output: `<out>/logs/<job>.log`); the suite writes
 `<out>/benchmarks.jsonl` (every row, with "benchmark", "job" and "mode"), `summary.md`
-and `throughput.png` (`benchmarks.report`) and `runs.json` (every job's command,
+and `throughput.png` (`dmcr_jax.benchmarks.report`) and `runs.json` (every job's command,
 status, exit code and wall time). Runs into an existing ``--out`` folder replace the
 jobs run again and keep the others, so a sweep can be run in parts.
 
-    python -m benchmarks --quick --out /tmp/suite_quick   # tiny sizes: minutes on 2 cores
-    python -m benchmarks --only physics,env-exact --out /tmp/suite        # some jobs
-    python -m benchmarks --dry-run                        # print the commands of the plan
+    python -m dmcr_jax.benchmarks --quick --out /tmp/suite_quick   # tiny sizes: minutes on 2 cores
+    python -m dmcr_jax.benchmarks --only physics,env-exact --out /tmp/suite        # some jobs
+    python -m dmcr_jax.benchmarks --dry-run                        # print the commands of the plan
 """
 
 from __future__ import annotations
@@ -30,11 +30,8 @@ import threading
 import time
 from typing import Callable, Sequence
 
-from benchmarks import report
-from benchmarks import rows as R
-
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-"""The repository root: children run there, so `python -m benchmarks.x` resolves."""
+from dmcr_jax.benchmarks import report
+from dmcr_jax.benchmarks import rows as R
 
 BENCHMARKS = R.BENCHMARKS
 """What ``--only`` accepts, in the order the suite runs them."""
@@ -238,7 +235,7 @@ def run_job(job: Job, out_dir: str, on_line: Callable[[str], None] | None = None
   with open(log, "w") as log_file:
     log_file.write(f"$ {shlex.join(argv)}\n")
     log_file.flush()
-    proc = subprocess.Popen(argv, cwd=ROOT, env=dict(os.environ, PYTHONUNBUFFERED="1"),
+    proc = subprocess.Popen(argv, env=dict(os.environ, PYTHONUNBUFFERED="1"),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             errors="replace", start_new_session=True)
 
@@ -277,9 +274,10 @@ def run_job(job: Job, out_dir: str, on_line: Callable[[str], None] | None = None
 
 
 def default_out(now: datetime.datetime | None = None, device: str | None = None) -> str:
-  """`benchmarks/results/suite-<device>-<UTC date>` (under the repository root)."""
+  """`benchmarks/results/suite-<device>-<UTC date>`, relative to the current directory
+  (the repository root, where the committed results live)."""
   now = now or datetime.datetime.now(datetime.timezone.utc)
-  return os.path.join(ROOT, "benchmarks", "results",
+  return os.path.join("benchmarks", "results",
                       f"suite-{R.device_slug(device)}-{now:%Y-%m-%d}")
 
 
@@ -402,9 +400,9 @@ def run_suite(jobs: Sequence[Job], out_dir: str, mode: str, command: str,
 
 
 def build_parser() -> argparse.ArgumentParser:
-  """The command line of `python -m benchmarks`."""
+  """The command line of `python -m dmcr_jax.benchmarks`."""
   p = argparse.ArgumentParser(
-      prog="python -m benchmarks",
+      prog="python -m dmcr_jax.benchmarks",
       description="Run every dmcr_jax benchmark (each as a child process) and write "
                   "benchmarks.jsonl, summary.md and throughput.png.")
   p.add_argument("--quick", action="store_true",

@@ -1,7 +1,7 @@
 """End-to-end training time: one `train` run (cartpole-balance by default), timed, beside its learner alone.
 
-Runs the `train` command's parse and `train.loop.train` in this process with the
-arguments given (unknown ones go to `train`; see ``python -m train --help``) on
+Runs the `train` command's parse and `dmcr_jax.train.loop.train` in this process with the
+arguments given (unknown ones go to `train`; see ``python -m dmcr_jax.train --help``) on
 top of the README's H100 command (cartpole-balance, 50,000 training steps, 16
 envs, bfloat16, dm_control's exact look, no intermediate checkpoints), into a
 fresh run folder, and reports: the wall time of the training loop (compilation
@@ -12,7 +12,7 @@ at which an episode's return reached ``--threshold``, the final return
 where the loop's time went (summary.json's "host_seconds": act, learn, the env's
 step_async and step_wait, store; "env_seconds": the env's own parts).
 
-The baseline in the same run: the learner alone (`benchmarks.learner`'s scanned
+The baseline in the same run: the learner alone (`dmcr_jax.benchmarks.learner`'s scanned
 updates of the same agents, batch, dtype and augmentation on full random
 buffers). The end-to-end rate compared with it is the steady one: transitions
 per second per agent between the first and the last episode ends after the
@@ -20,7 +20,7 @@ warm-up (so compilation and the random-action phase are left out), times `utd`;
 `ratio` = that rate over the learner's updates/s. 1.0 means the env costs the
 training loop nothing.
 
-Devices: `train` shards its K agents over the local devices (`train.loop`).
+Devices: `train` shards its K agents over the local devices (`dmcr_jax.train.loop`).
 ``--devices 1,2,4,8`` runs the same training once per count, the agents
 sharded over that many local devices (each count at most the local device
 count and dividing K, and 1 with the device driver; otherwise the run is
@@ -31,9 +31,9 @@ transitions/s per agent × K); with several counts also its scaling efficiency:
 that total over D times the one-device run's (1.0: linear; none when a run is
 too short for a steady rate: fewer than two episode ends past the warm-up).
 
-    python -m benchmarks.training --out benchmarks/results/train_h100.jsonl
-    python -m benchmarks.training --steps 2000 --num-envs 4 --quality fastest --out /tmp/t.jsonl
-    python -m benchmarks.training --devices 1,2 --seeds 0,1 --out /tmp/scaling.jsonl
+    python -m dmcr_jax.benchmarks.training --out benchmarks/results/train_h100.jsonl
+    python -m dmcr_jax.benchmarks.training --steps 2000 --num-envs 4 --quality fastest --out /tmp/t.jsonl
+    python -m dmcr_jax.benchmarks.training --devices 1,2 --seeds 0,1 --out /tmp/scaling.jsonl
 
 One JSON line per run appended to `--out`, a Markdown table beside it.
 """
@@ -48,7 +48,7 @@ import sys
 import tempfile
 import time
 
-from benchmarks import rows as R
+from dmcr_jax.benchmarks import rows as R
 
 DEFAULT_TRAIN_ARGS = ("--task", "cartpole-balance", "--steps", "50000", "--num-envs", "16",
                       "--dtype", "bfloat16", "--quality", "exact", "--checkpoint-every", "0",
@@ -86,11 +86,11 @@ def steady_rate(log_rows: list[dict], after_step: int) -> float | None:
 
 
 def learner_alone(cfg, seconds: float = 3.0, devices: int = 1) -> dict:
-  """`benchmarks.learner`'s row for the run's learner (agents, dtype, loop, batch,
+  """`dmcr_jax.benchmarks.learner`'s row for the run's learner (agents, dtype, loop, batch,
   augmentation, frames) on full random buffers, the agents sharded over
   `devices` local devices."""
   import jax
-  from benchmarks import learner
+  from dmcr_jax.benchmarks import learner
   from dmcr_jax import models
   on_cpu = jax.default_backend() == "cpu"
   task = models.load(cfg.task)
@@ -107,8 +107,8 @@ def run(train_argv: list[str], threshold: float, run_dir: str, baseline: bool = 
   """Trains with `train_argv` into `run_dir` (after timing the learner alone), the
   agents sharded over `devices` local devices (None: as `train` picks); one
   result row."""
-  from train import __main__ as train_cli
-  from train import loop
+  from dmcr_jax.train import __main__ as train_cli
+  from dmcr_jax.train import loop
 
   cfg, _ = train_cli.parse(list(train_argv) + ["--out", run_dir])
   used = 1 if cfg.device_driver() else loop.mesh_devices(len(cfg.agents()), devices)
@@ -152,15 +152,15 @@ def run(train_argv: list[str], threshold: float, run_dir: str, baseline: bool = 
 
 
 def check_device_counts(text: str, cfg) -> list[int]:
-  """`--devices`' counts for the run `cfg`, sorted (`benchmarks.learner.device_counts`
+  """`--devices`' counts for the run `cfg`, sorted (`dmcr_jax.benchmarks.learner.device_counts`
   with its K agents; only 1 with the device driver).
 
   Raises:
     ValueError: naming the valid counts.
   """
   import jax
-  from benchmarks import learner
-  from train import loop
+  from dmcr_jax.benchmarks import learner
+  from dmcr_jax.train import loop
   counts = learner.device_counts(text, [len(cfg.agents())], jax.local_device_count())
   for n in counts:
     loop.check_train_devices(cfg, n)
@@ -211,7 +211,7 @@ def headline(r: dict) -> str:
 
 
 def suite_row(r: dict) -> dict:
-  """The run's row with the suite's fields (`benchmarks.rows`)."""
+  """The run's row with the suite's fields (`dmcr_jax.benchmarks.rows`)."""
   n = r.get("devices") or 1
   return R.row(r, f"{r['task']} {r['renderer']} {r['dtype']}"
                + (f" on {n} devices" if n > 1 else ""), n=r["num_envs"],
@@ -250,13 +250,13 @@ def main(argv=None) -> None:
   train_argv = list(DEFAULT_TRAIN_ARGS) + train_argv
   counts = [None]
   if a.devices is not None:
-    from train import __main__ as train_cli
+    from dmcr_jax.train import __main__ as train_cli
     cfg, _ = train_cli.parse(train_argv)  # creates nothing
     try:
       counts = check_device_counts(a.devices, cfg)
     except ValueError as e:
       p.error(f"--devices: {e}")
-  from benchmarks.learner import scaling_efficiency
+  from dmcr_jax.benchmarks.learner import scaling_efficiency
   several = len(counts) > 1
   rows, one = [], None
   for n in counts:  # ascending: the one-device run, if asked for, comes first
@@ -272,9 +272,9 @@ def main(argv=None) -> None:
       copy_outputs(run_dir, os.path.splitext(a.out)[0] + (f"_devices{n}" if several else ""))
     R.emit(row, a.out)
   if a.out:
-    R.write_markdown(a.out, f"Rows of `python -m benchmarks.training` appended to "
+    R.write_markdown(a.out, f"Rows of `python -m dmcr_jax.benchmarks.training` appended to "
                      f"`{os.path.basename(a.out)}`; the last run: `python -m "
-                     f"benchmarks.training {' '.join(argv)}` ({os.cpu_count()} cores).\n\n"
+                     f"dmcr_jax.benchmarks.training {' '.join(argv)}` ({os.cpu_count()} cores).\n\n"
                      + markdown(R.read(a.out)))
   print(markdown(rows))
 

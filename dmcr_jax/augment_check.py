@@ -1,7 +1,7 @@
 """An augmentation checker: the properties the SAC+AUG learner relies on.
 
 Like gymnasium's env checker, `check(aug)` runs an augmentation on real
-observations and names each property it breaks. The learner (`train.sac.
+observations and names each property it breaks. The learner (`dmcr_jax.train.sac.
 augment_and_mix`) calls ``aug(key, (obs, next_obs))`` on uint8 batches
 (B, H, W, 3·stack) inside `jax.jit`, under `jax.vmap` over agents; the
 appendix asks for one draw per sample, shared by the frames of its stack and by
@@ -60,7 +60,7 @@ CHECK_LOOKS: tuple[int, ...] = (0, 3, 11, 42)
 """Visual seeds rendered per task (0 is dm_control's look)."""
 
 STACK = 3
-"""Frames per observation (`train.loop.TrainConfig.frame_stack`'s default)."""
+"""Frames per observation (`dmcr_jax.train.loop.TrainConfig.frame_stack`'s default)."""
 
 PROPERTIES: tuple[tuple[str, str], ...] = (
     ("runs", "aug(key, obs) returns"),

@@ -134,7 +134,7 @@ def registered():
 
 
 def test_register_makes_get_and_compositions_accept_the_name(registered):
-  from train import sac
+  from dmcr_jax.train import sac
   key = jax.random.key(3)
   obs = np.random.default_rng(0).integers(0, 256, (4, 16, 16, 9), dtype=np.uint8)
   assert augment.get("hue") is registered and "hue" in augment.registered()
@@ -174,7 +174,7 @@ def test_import_paths_load_and_explain_failures():
 
 
 def test_benchmark_times_an_imported_augmentation_beside_the_builtins(tmp_path):
-  from benchmarks import augment as bench
+  from dmcr_jax.benchmarks import augment as bench
   out = tmp_path / "augment.jsonl"
   bench.main(["--batch", "4", "--size", "16", "--names", "none,drq", "--aug",
               "examples.augmentations:hue_rotation", "--min-time", "0", "--min-reps",

@@ -14,8 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from train import curl, loop, sac, sac_ae
-from train.networks import (Decoder, StrideTwoConv, StrideTwoConvTranspose, center_crop,
+from dmcr_jax.train import curl, loop, sac, sac_ae
+from dmcr_jax.train.networks import (Decoder, StrideTwoConv, StrideTwoConvTranspose, center_crop,
                             encoder_sides)
 
 pytestmark = pytest.mark.xdist_group("aux_losses")

@@ -1,4 +1,4 @@
-"""`--devices` of `benchmarks.learner` and `benchmarks.training`: the agents sharded
+"""`--devices` of `dmcr_jax.benchmarks.learner` and `dmcr_jax.benchmarks.training`: the agents sharded
 over several local devices (forced host CPU devices), the scaling rows, and the
 refusal of device counts that cannot shard the agents."""
 
@@ -10,12 +10,12 @@ import textwrap
 
 import pytest
 
-from benchmarks import learner, training
-from train import loop
+from dmcr_jax.benchmarks import learner, training
+from dmcr_jax.train import loop
 
 TINY_NETS = dict(conv_channels=4, feature_dim=8, hidden_dim=16)
 """Networks small enough to build and compile in seconds on a CPU (the subprocesses
-patch `train.sac.SACConfig` with them)."""
+patch `dmcr_jax.train.sac.SACConfig` with them)."""
 
 
 def run_on_cpu_devices(script: str, devices: int = 2, timeout: int = 300) -> str:
@@ -87,7 +87,7 @@ def test_learner_measures_each_device_count_and_reports_scaling(tmp_path):
   run_on_cpu_devices(f"""
       import contextlib, io
       import jax
-      from benchmarks import learner
+      from dmcr_jax.benchmarks import learner
       assert jax.local_device_count() == 2
 
       def refused(argv, why):
@@ -139,7 +139,7 @@ def test_learner_runs_the_update_sharded_over_two_devices():
   run_on_cpu_devices(f"""
       import functools
       import jax
-      from benchmarks import learner
+      from dmcr_jax.benchmarks import learner
       learner.sac.SACConfig = functools.partial(learner.sac.SACConfig, **{TINY_NETS!r})
       call, _, _ = learner.scanned_workload(2, "float32", "vmap", 4, 1, 16, 3, 2, 64,
                                             devices=2)
@@ -150,7 +150,7 @@ def test_learner_runs_the_update_sharded_over_two_devices():
 
 
 def _fake_train_run(cfg, progress=True, devices=None):
-  """Stands in for `train.loop.train`: a log.csv whose steady rate is 100
+  """Stands in for `dmcr_jax.train.loop.train`: a log.csv whose steady rate is 100
   transitions/s per agent on one device and 90 % per device more on several."""
   os.makedirs(cfg.out_dir, exist_ok=True)
   n = loop.mesh_devices(len(cfg.agents()), devices)
@@ -172,8 +172,8 @@ def test_training_refuses_device_counts_it_cannot_shard_the_agents_over(tmp_path
   ]
   run_on_cpu_devices(f"""
       import io, contextlib
-      from benchmarks import training
-      from train import loop
+      from dmcr_jax.benchmarks import training
+      from dmcr_jax.train import loop
       def no_training(*args, **kwargs):
           raise AssertionError("trained")
       loop.train = no_training
@@ -195,8 +195,8 @@ def test_training_refuses_device_counts_it_cannot_shard_the_agents_over(tmp_path
 def test_training_runs_once_per_device_count_with_scaling_rows(tmp_path):
   out, run_dir = tmp_path / "scaling.jsonl", tmp_path / "runs"
   run_on_cpu_devices(f"""
-      from benchmarks import learner, training
-      from train import loop
+      from dmcr_jax.benchmarks import learner, training
+      from dmcr_jax.train import loop
       from tests.test_benchmarks_devices import _fake_train_run
       alone = []
       def fake_bench(k, *args, devices=1, **kwargs):

@@ -1,4 +1,4 @@
-"""benchmarks.profile: device events picked and grouped per op from a profiler trace
+"""dmcr_jax.benchmarks.profile: device events picked and grouped per op from a profiler trace
 (a synthetic GPU-shaped trace, then a real CPU one), and the command end to end."""
 
 import gzip
@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import pytest
 
-from benchmarks import profile as P
+from dmcr_jax.benchmarks import profile as P
 
 
 def _gpu_trace():

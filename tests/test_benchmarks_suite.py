@@ -1,6 +1,6 @@
-"""The benchmark suite's plumbing (`python -m benchmarks`), without running a benchmark.
+"""The benchmark suite's plumbing (`python -m dmcr_jax.benchmarks`), without running a benchmark.
 
-The one row format (`benchmarks.rows`: the row, timing, the table writer), the rows
+The one row format (`dmcr_jax.benchmarks.rows`: the row, timing, the table writer), the rows
 the benchmarks build, the headline, summary and plot from such rows, a suite run of
 fake child commands (one fails, one runs past its limit, the others still run and are
 collected), merging runs into one folder, and the command line's errors.
@@ -12,9 +12,9 @@ import sys
 
 import pytest
 
-from benchmarks import report, suite
-from benchmarks import rows as R
-from benchmarks.training import first_reaching
+from dmcr_jax.benchmarks import report, suite
+from dmcr_jax.benchmarks import rows as R
+from dmcr_jax.benchmarks.training import first_reaching
 
 PY = sys.executable
 CPU = dict(device="cpu", platform="cpu", time_utc="2026-11-23T10:00:00Z")
@@ -23,7 +23,7 @@ CPU = dict(device="cpu", platform="cpu", time_utc="2026-11-23T10:00:00Z")
 def _rows() -> dict[str, list[dict]]:
   """Rows of every benchmark as its module writes them (built by its own helpers
   where it has them)."""
-  from benchmarks import env, jax_render, learner, training
+  from dmcr_jax.benchmarks import env, jax_render, learner, training
   physics = [R.row(dict(CPU, task="walker-walk", num_envs=n, compile_s=10.0, run_s=0.5,
                         physics_steps_per_s=1000.0 * n, bare_compile_s=9.0),
                    "walker-walk", n=n, throughput=1000.0 * n, unit="physics steps/s",
@@ -85,7 +85,7 @@ def test_a_row_holds_the_suite_fields_beside_the_benchmarks_own():
 
 
 def test_benchmarks_name_their_variants_and_split_their_measurements():
-  from benchmarks import env, learner
+  from dmcr_jax.benchmarks import env, learner
   rows = _rows()
   assert rows["env"][1]["variant"] == "fastest, no copy, line search 4"
   assert learner.variant(dict(kind="scanned", agents=8, dtype="bfloat16", agent_loop="map",
@@ -135,7 +135,7 @@ def test_headline_summary_and_plot(tmp_path):
              dict(name="render", benchmark="render", argv=[], status="failed", returncode=1,
                   wall_s=1.0, rows=0, tail=["Traceback", "RuntimeError: no GL | here"],
                   time_utc="")]
-  meta = dict(commands=[dict(command="python -m benchmarks --quick", mode="quick",
+  meta = dict(commands=[dict(command="python -m dmcr_jax.benchmarks --quick", mode="quick",
                              time_utc="2026-11-23T10:00:00+00:00", wall_s=12.0, cpus=2,
                              host="h")])
   md = report.summary_markdown(rows, results, meta)
@@ -143,7 +143,7 @@ def test_headline_summary_and_plot(tmp_path):
                "updates/s", "end-to-end training", "367 s for 50,000 steps",
                "≥ 900 after 112 s", "one agent step", "4,120.0 ms per agent step", "## Jobs",
                "RuntimeError: no GL \\| here", "## step_profile", "Time per agent step",
-               "python -m benchmarks --quick", "original DMCR pipeline (baseline)",
+               "python -m dmcr_jax.benchmarks --quick", "original DMCR pipeline (baseline)",
                "walker-walk bare MJX: 80,000 | 0.8 |"):
     assert text in md, text
   png = tmp_path / "t.png"
@@ -253,7 +253,7 @@ def test_plans_cover_every_benchmark(tmp_path, capsys):
 
 
 def test_step_profile_breakdown_and_training_threshold():
-  from benchmarks.step_profile import breakdown
+  from dmcr_jax.benchmarks.step_profile import breakdown
   b = breakdown(dict(physics=60.0, render=40.0, act=10.0, update=900.0), num_envs=1000)
   assert b["total_ms"] == pytest.approx(1010.0)
   assert b["env_agent_steps_per_s"] == pytest.approx(10_000.0)

@@ -22,16 +22,29 @@ def run(args, timeout=240, **env):
 
 def test_importing_the_package_prints_nothing_to_stdout():
   # mujoco-mjx prints "Failed to import warp: …" to stdout when warp is absent.
-  code, stdout, stderr = run(["-c", "import dmcr_jax, train.loop"])
+  code, stdout, stderr = run(["-c", "import dmcr_jax, dmcr_jax.train.loop"])
   assert code == 0, stderr[-2000:]
   assert stdout == ""
   assert "warp" not in stderr
 
 
+def test_train_and_benchmarks_install_under_the_projects_name(tmp_path):
+  # Run outside the repository, so only the installed packages are importable: the
+  # top-level folders must not install as `train` / `benchmarks` (they would shadow
+  # a user's own modules of those names).
+  out = subprocess.run(
+      [sys.executable, "-c", "import importlib.util as u, dmcr_jax.train.loop, "
+       "dmcr_jax.benchmarks.rows; print(u.find_spec('train'), u.find_spec('benchmarks'))"],
+      capture_output=True, text=True, timeout=240, cwd=tmp_path,
+      env=dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=""))
+  assert out.returncode == 0, out.stderr[-2000:]
+  assert out.stdout.split() == ["None", "None"]
+
+
 @pytest.fixture(scope="module")
 def run_without_checkpoint(tmp_path_factory):
   """A `train` folder with config.json (two agents) and no checkpoint yet."""
-  from train import loop
+  from dmcr_jax.train import loop
   out = str(tmp_path_factory.mktemp("run"))
   loop.save_config(loop.TrainConfig(task="cartpole-balance", seeds=(0, 1), out_dir=out), out)
   return out
@@ -48,7 +61,7 @@ def assert_clean_error(code, stderr, prog, match):
 
 def test_evaluate_without_a_checkpoint_fails_cleanly_and_exits(run_without_checkpoint):
   # It printed a FileNotFoundError inside 250-430 lines of noise and at times never exited.
-  code, stdout, stderr = run(["-m", "train.evaluate", run_without_checkpoint], timeout=120)
+  code, stdout, stderr = run(["-m", "dmcr_jax.train.evaluate", run_without_checkpoint], timeout=120)
   assert_clean_error(code, stderr, "dmcr-evaluate", "no checkpoint")
   assert stdout == ""
   assert not os.path.exists(os.path.join(run_without_checkpoint, "eval"))
@@ -57,7 +70,7 @@ def test_evaluate_without_a_checkpoint_fails_cleanly_and_exits(run_without_check
 def test_evaluate_refuses_agents_out_of_range(run_without_checkpoint):
   os.makedirs(os.path.join(run_without_checkpoint, "checkpoints", "5"), exist_ok=True)
   try:
-    code, _, stderr = run(["-m", "train.evaluate", run_without_checkpoint, "--agents", "3"],
+    code, _, stderr = run(["-m", "dmcr_jax.train.evaluate", run_without_checkpoint, "--agents", "3"],
                           timeout=120)
   finally:
     os.rmdir(os.path.join(run_without_checkpoint, "checkpoints", "5"))
@@ -83,7 +96,7 @@ def test_help_shows_defaults_and_choices():
                "--dtype {float32,bfloat16}", "--agent-loop {vmap,map}"):
     assert want in text, want
   assert "warp" not in stdout
-  code, stdout, stderr = run(["-m", "train.evaluate", "--help"], timeout=120)
+  code, stdout, stderr = run(["-m", "dmcr_jax.train.evaluate", "--help"], timeout=120)
   assert code == 0, stderr[-2000:]
   text = " ".join(stdout.split())
   for want in ("held-out looks per condition (default: 100)", "--renderer {pool,jax}",
@@ -109,7 +122,7 @@ def test_train_imports_and_checks_your_augmentation_before_compiling(tmp_path):
 
 
 def test_train_takes_an_import_path_beside_the_builtins():
-  from train.__main__ import parse
+  from dmcr_jax.train.__main__ import parse
   cfg, _ = parse(["--task", "cartpole-balance", "--image-size", "32",
                   "--aug", "drq,cj+drq,examples.augmentations:hue_rotation+drq"])
   assert cfg.sac.aug_names == ("drq", "cj+drq", "examples.augmentations:hue_rotation+drq")

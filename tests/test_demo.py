@@ -8,8 +8,8 @@ import sys
 import imageio.v3 as iio
 import pytest
 
-from train import demo as dm
-from train import sac
+from dmcr_jax.train import demo as dm
+from dmcr_jax.train import sac
 
 # test_evaluate's group: its JAX-renderer evaluation is sized as the demo's (2 envs,
 # cartpole, 16 px), so one worker compiles that env and policy once for both.
@@ -52,8 +52,8 @@ def test_readme_starts_with_the_demo_and_the_script_is_installed():
                          "&& dmcr-demo")
   assert "dmcr-rollout" in readme.split("## Tasks", 1)[0]  # still the second example
   with open(os.path.join(root, "pyproject.toml")) as f:
-    assert 'dmcr-demo = "train.demo:main"' in f.read()
-  out = subprocess.run([sys.executable, "-m", "train.demo", "--help"], capture_output=True,
+    assert 'dmcr-demo = "dmcr_jax.train.demo:main"' in f.read()
+  out = subprocess.run([sys.executable, "-m", "dmcr_jax.train.demo", "--help"], capture_output=True,
                        text=True, timeout=120, cwd=root)
   assert out.returncode == 0 and "usage: dmcr-demo" in out.stdout, out.stderr[-2000:]
 
@@ -97,7 +97,7 @@ def test_demo_writes_its_files_and_refuses_to_overwrite_them(tmp_path, capsys):
 def test_the_readme_command_runs_the_whole_demo(tmp_path):
   # `dmcr-demo` at its defaults, as the README's first command runs it (minutes).
   root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-  out = subprocess.run([sys.executable, "-m", "train.demo", "--out", str(tmp_path / "d"),
+  out = subprocess.run([sys.executable, "-m", "dmcr_jax.train.demo", "--out", str(tmp_path / "d"),
                         "--no-progress"], capture_output=True, text=True, timeout=900,
                        cwd=root, env=dict(os.environ, JAX_PLATFORMS="cpu"))
   assert out.returncode == 0, out.stderr[-3000:]

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import dmcr_jax
-from train import evaluate as ev
-from train import loop, sac
+from dmcr_jax.train import evaluate as ev
+from dmcr_jax.train import loop, sac
 
 pytestmark = pytest.mark.xdist_group("evaluate")
 
@@ -134,7 +134,7 @@ def test_protocol_table_arithmetic_and_determinism(run_dir, tmp_path):
 
 @pytest.mark.slow
 def test_invariance_is_zero_without_visual_change_and_positive_with_floors(run_dir, tmp_path):
-  from train import analysis
+  from dmcr_jax.train import analysis
   result = analysis.encoder_invariance(run_dir, str(tmp_path), looks=3, steps=2,
                                        vary=("none", "floor"), quality="fastest", workers=1)
   assert result["physical_state_equal"] == {"none": True, "floor": True}
@@ -148,7 +148,7 @@ def test_invariance_is_zero_without_visual_change_and_positive_with_floors(run_d
 
 
 def test_conv_activations_match_a_numpy_convolution():
-  from train import analysis
+  from dmcr_jax.train import analysis
   agent = sac.init_agent(jax.random.key(0), (16, 16, 9), 1, CFG.sac)
   obs = np.random.default_rng(0).integers(0, 256, (2, 16, 16, 9), dtype=np.uint8)
   maps = analysis.conv_activations(agent.networks.encoder, agent.params["encoder"], obs)
@@ -166,7 +166,7 @@ def test_conv_activations_match_a_numpy_convolution():
 @pytest.mark.slow
 def test_episode_video_tiles_the_looks_frame_by_frame(run_dir, tmp_path):
   import imageio.v2 as imageio
-  from train import analysis
+  from dmcr_jax.train import analysis
   path = analysis.episode_video(run_dir, str(tmp_path), looks=2, quality="fastest", workers=1,
                                 scale=2)
   assert os.path.basename(path) in ("episode.mp4", "episode.gif")
@@ -191,7 +191,7 @@ def test_eval_json_is_valid_json_when_e_g_is_undefined(run_dir, tmp_path, monkey
 
 def _summary(augs, seeds=(0, 1), task="cartpole-balance"):
   """A synthetic `evaluate` summary: agent returns 100·(agent + 1) − 10·condition."""
-  from train import paper_results
+  from dmcr_jax.train import paper_results
   conditions = list(ev.conditions_for(task))
   agents = []
   for a, (aug, seed) in enumerate((aug, seed) for aug in augs for seed in seeds):

@@ -19,9 +19,9 @@ import pytest
 import dmcr_jax
 from dmcr_jax import jax_env
 from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, EnvRanges, levels
-from train import evaluate as ev
-from train import loop, sac
-from train.__main__ import parse
+from dmcr_jax.train import evaluate as ev
+from dmcr_jax.train import loop, sac
+from dmcr_jax.train.__main__ import parse
 
 # One worker runs the module, so its module-scoped training run is made once.
 pytestmark = pytest.mark.xdist_group("few_shot")

@@ -17,8 +17,8 @@ import pytest
 import dmcr_jax
 from dmcr_jax import jax_env
 from dmcr_jax.visuals.levels import levels
-from train import loop, sac
-from train.__main__ import parse
+from dmcr_jax.train import loop, sac
+from dmcr_jax.train.__main__ import parse
 
 pytestmark = pytest.mark.xdist_group("jax_env")
 
@@ -208,7 +208,7 @@ def test_train_rejects_bad_renderer_arguments(argv, match, capsys):
 
 
 def _host_loop_updates(start, steps, n, warmup, utd):
-  """Critic updates the host loop (train.loop) makes from `start` to `steps`
+  """Critic updates the host loop (dmcr_jax.train.loop) makes from `start` to `steps`
   (every buffer can be sampled from the first update on)."""
   owed, updates, step = 0.0, 0, start
   while step < steps:

@@ -15,7 +15,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from benchmarks import jax_render_parity as parity
+from dmcr_jax.benchmarks import jax_render_parity as parity
 from dmcr_jax.visuals import jax_render as JR
 from dmcr_jax.visuals import jax_render_scene as JS
 from dmcr_jax.visuals import render_model as RM
@@ -340,7 +340,7 @@ def test_variables_move_the_reacher_target(bank):
 # Parity with MuJoCo (segmentation IoU per body, mean absolute difference)
 # --------------------------------------------------------------------------
 
-# Bounds from `python -m benchmarks.jax_render_parity` (the full bank, 100 seeds x 3
+# Bounds from `python -m dmcr_jax.benchmarks.jax_render_parity` (the full bank, 100 seeds x 3
 # states: mean 2.1 / 5.4, max 3.9 / 12.1): the test checks three frames with margin.
 MAD_BOUND = {"cartpole": 4.0, "walker": 9.0}
 

@@ -1,9 +1,9 @@
-"""`benchmarks.parity_ids`: edge marking and the cross-machine counts, on small arrays."""
+"""`dmcr_jax.benchmarks.parity_ids`: edge marking and the cross-machine counts, on small arrays."""
 
 import numpy as np
 import pytest
 
-from benchmarks import parity_ids
+from dmcr_jax.benchmarks import parity_ids
 
 
 def test_on_edge_marks_pixels_next_to_another_id():

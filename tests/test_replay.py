@@ -1,4 +1,4 @@
-"""Tests of `train.replay` against NumPy envs with NEXT_STEP auto-reset.
+"""Tests of `dmcr_jax.train.replay` against NumPy envs with NEXT_STEP auto-reset.
 
 The envs are simulated here in NumPy with `dmcr_jax.make`'s semantics (the step
 that ends an episode returns truncated=True; the next step ignores its action,
@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from train import replay
+from dmcr_jax.train import replay
 
 pytestmark = pytest.mark.xdist_group("replay")
 

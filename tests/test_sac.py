@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from dmcr_jax import augment
-from train import sac
-from train.networks import (Actor, squash_log_std, tanh_gaussian_log_prob,
+from dmcr_jax.train import sac
+from dmcr_jax.train.networks import (Actor, squash_log_std, tanh_gaussian_log_prob,
                             tanh_gaussian_sample)
 
 pytestmark = pytest.mark.xdist_group("sac")
@@ -494,7 +494,7 @@ def test_config_defaults_and_validation():
 
 @pytest.mark.parametrize("dtype", ["float32", "bfloat16"])
 def test_encoder_on_prepared_blocks_equals_encoder_on_pixels(agent, batch, dtype):
-  from train.networks import encoder_input
+  from dmcr_jax.train.networks import encoder_input
   encoder = dataclasses.replace(agent.networks.encoder, dtype=dtype)
   params = agent.params["encoder"]
   blocks = encoder_input(encoder, batch.obs)

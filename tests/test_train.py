@@ -13,8 +13,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from train import loop, sac
-from train.__main__ import parse
+from dmcr_jax.train import loop, sac
+from dmcr_jax.train.__main__ import parse
 
 pytestmark = pytest.mark.xdist_group("train")
 
@@ -122,7 +122,7 @@ def test_interrupted_run_resumes_where_it_stopped(tmp_path):
   cache = str(tmp_path / "jax_cache") if own else jax.config.jax_compilation_cache_dir
   jax.config.update("jax_compilation_cache_dir", cache)
   script = textwrap.dedent(f"""
-      from train import loop, sac
+      from dmcr_jax.train import loop, sac
       cfg = loop.TrainConfig(steps=400, checkpoint_every=10, out_dir={out!r}, seeds=(0, 1),
                              **{ {k: v for k, v in CFG.items() if k != "sac"}!r},
                              sac=sac.SACConfig(batch_size=8, conv_channels=4, feature_dim=8,
@@ -182,7 +182,7 @@ def test_no_update_is_owed_until_the_buffers_refill(start):
   # 40: its buffers were not checkpointed) owes nothing for a warm-up's worth of
   # transitions after its start, then `utd` per transition in pairs, as the fresh
   # run after its warm-up. Both drivers' bookkeeping (NumPy and traced).
-  from train import step as train_step
+  from dmcr_jax.train import step as train_step
   spec = train_step.StepSpec(agents=1, num_envs=4, warmup_steps=10, utd=1.0, sac=TINY,
                              agent_loop="vmap", low=(-1.0,), high=(1.0,))
   first = loop.updates_from(loop.TrainConfig(warmup_steps=10), start)
@@ -222,7 +222,7 @@ def test_env_groups_step_in_turn_and_store_each_groups_own_frames(tmp_path, monk
   # in turn, each group's stored observations are its own consecutive frame
   # stacks (a stack is the previous one shifted by a frame, unless an episode
   # starts), and the run owes and runs the updates an ungrouped run does.
-  from train import step as train_step
+  from dmcr_jax.train import step as train_step
   stores = []
   store = train_step.store_jit
 
@@ -261,7 +261,7 @@ def test_agents_sharded_over_two_devices_or_mapped_match_one_vmapped_call():
   script = textwrap.dedent("""
       import dataclasses
       import jax, jax.numpy as jnp, numpy as np
-      from train import loop, replay, sac, step
+      from dmcr_jax.train import loop, replay, sac, step
       assert jax.device_count() == 2
       cfg = sac.SACConfig(batch_size=8, conv_channels=4, feature_dim=8, hidden_dim=16)
       spec = step.StepSpec(agents=2, num_envs=2, warmup_steps=0, utd=1.0, sac=cfg,
@@ -344,7 +344,7 @@ def test_learning_curve_shows_a_single_point(tmp_path):
 
 
 def test_train_command_reports_progress_every_2_percent(tmp_path, monkeypatch):
-  import train.__main__ as cli
+  import dmcr_jax.train.__main__ as cli
   seen = {}
 
   def fake_train(cfg, **kwargs):

@@ -1,4 +1,4 @@
-"""`train` / `python -m train`: train SAC+AUG, CURL or SAC+AE agents on a DMCR task from pixels.
+"""`train` / `python -m dmcr_jax.train`: train SAC+AUG, CURL or SAC+AE agents on a DMCR task from pixels.
 
     dmcr-train --task cartpole-balance --steps 50000 --seeds 0,1,2 --aug drq
     dmcr-train --task cartpole-balance --algo curl      # or --algo sac_ae
@@ -13,13 +13,13 @@ dm_control's look; ranges multiply with the seeds and augmentations). `--steps` 
 Arguments are checked before anything is compiled. Outputs go to `--out`
 (default `runs/<task>-<aug>`): log.csv, learning_curve.png, summary.json and
 orbax checkpoints; `--resume` continues from the latest checkpoint (see
-`train.loop` for what is restored: agents, step and RNG key, not the buffers).
+`dmcr_jax.train.loop` for what is restored: agents, step and RNG key, not the buffers).
 
 `--renderer jax` renders with the JAX ray caster on the device; with the physics
 on the device too (`--physics device`) training runs in chunks of `--chunk-steps`
-vector steps, each one XLA call (`train.device_loop`). `--physics auto` (the
+vector steps, each one XLA call (`dmcr_jax.train.device_loop`). `--physics auto` (the
 default) steps small batches' physics on the host CPU, beside the learner's
-updates on the accelerator (`train.loop`). `--quality` and `--workers` belong to
+updates on the accelerator (`dmcr_jax.train.loop`). `--quality` and `--workers` belong to
 the default CPU render pool (`--renderer pool`).
 
 `--aug` also takes your own augmentation as `package.module:function` (e.g.
@@ -28,8 +28,8 @@ the default CPU render pool (`--renderer pool`).
 first, and must pass `dmcr_jax.augment.check` at the run's image size before
 anything is compiled.
 
-`--algo` picks the learner (`train.sac.ALGOS`); unset options take its defaults
-(`train.sac.ALGO_DEFAULTS`: CURL renders at 100 and crops to 84 and takes no
+`--algo` picks the learner (`dmcr_jax.train.sac.ALGOS`); unset options take its defaults
+(`dmcr_jax.train.sac.ALGO_DEFAULTS`: CURL renders at 100 and crops to 84 and takes no
 `--aug`; SAC+AE uses batch 128 and no augmentation unless `--aug` names one).
 CURL on cheetah uses learning rate 2e-4 for the critic, actor and encoder (the
 paper's Table 6) unless `--lr` is given.
@@ -43,9 +43,9 @@ import json
 import os
 import sys
 
-from train.loop import (AGENT_LOOPS, CPU_PHYSICS_MAX_ENVS, PHYSICS, RENDERERS, RESUMABLE,
+from dmcr_jax.train.loop import (AGENT_LOOPS, CPU_PHYSICS_MAX_ENVS, PHYSICS, RENDERERS, RESUMABLE,
                         TrainConfig, check_config, load_config, progress_every, train)
-from train.sac import ALGOS, COMPUTE_DTYPES, SACConfig
+from dmcr_jax.train.sac import ALGOS, COMPUTE_DTYPES, SACConfig
 
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):

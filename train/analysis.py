@@ -24,10 +24,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from train import loop
-from train.step import to_env_action
-from train.evaluate import greedy_action, held_out_seeds
-from train.networks import StrideTwoConv, center_crop
+from dmcr_jax.train import loop
+from dmcr_jax.train.step import to_env_action
+from dmcr_jax.train.evaluate import greedy_action, held_out_seeds
+from dmcr_jax.train.networks import StrideTwoConv, center_crop
 
 CONV_LAYERS = (nn.Conv, StrideTwoConv)
 """The encoder's convolution modules (its first is a `StrideTwoConv`)."""

@@ -11,11 +11,11 @@ row's key, the other B − 1 keys are its negatives. W (F × F) is learned with 
 encoder; the momentum encoder gets no gradient. At acting and evaluation time
 the observation is center-cropped (`networks.Encoder.input_size`).
 
-The auxiliary task's interface, shared with `train.sac_ae`: `PARTNER` (the
+The auxiliary task's interface, shared with `dmcr_jax.train.sac_ae`: `PARTNER` (the
 parameters trained beside the encoder), `init_partner`, `optimizer` and
 `aux_loss`. The update order (critic, then actor, α and targets every
 `update_delay` updates, then the contrastive step every update) and the wiring
-into the learner are in `train.sac`.
+into the learner are in `dmcr_jax.train.sac`.
 """
 
 from __future__ import annotations
@@ -119,11 +119,11 @@ def aux_loss(aux_params, agent, obs: jax.Array, aux_input: jax.Array, key: jax.A
 
   Args:
     aux_params: ``{"encoder": …, "curl": {"w": W}}``, the differentiated parameters.
-    agent: the `train.sac.AgentState` (its encoder module and target encoder).
+    agent: the `dmcr_jax.train.sac.AgentState` (its encoder module and target encoder).
     obs: uint8 (B, S, S, C), the anchor crops (also the critic's o).
     aux_input: uint8 (B, S, S, C), the positives: independent crops of the same
       observations.
-    key, config: unused (the signature shared with `train.sac_ae.aux_loss`).
+    key, config: unused (the signature shared with `dmcr_jax.train.sac_ae.aux_loss`).
 
   Returns:
     (loss, {"aux_loss": loss}).

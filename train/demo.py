@@ -1,12 +1,12 @@
-"""`dmcr-demo` / `python -m train.demo`: the project's main job, sized for a laptop CPU.
+"""`dmcr-demo` / `python -m dmcr_jax.train.demo`: the project's main job, sized for a laptop CPU.
 
     dmcr-demo                                   # cartpole-balance into dmcr_demo/
     dmcr-demo --out my_demo --steps 8000        # longer training
 
 Trains one small SAC+AUG (DrQ) agent on a few visual seeds (few-shot looks:
-`dmcr_jax.levels`) with pixels from the JAX ray caster (`train.loop.train`, the
+`dmcr_jax.levels`) with pixels from the JAX ray caster (`dmcr_jax.train.loop.train`, the
 `train` command's run), then evaluates it zero-shot on held-out looks, one visual
-factor at a time and all together (`train.evaluate.evaluate`, the paper's protocol
+factor at a time and all together (`dmcr_jax.train.evaluate.evaluate`, the paper's protocol
 with fewer looks and initial states), and writes into `--out`:
 
   visual_seeds.png                 the training looks (top row) and held-out test
@@ -32,8 +32,8 @@ import time
 
 import numpy as np
 
-from train import evaluate as ev
-from train import loop, sac
+from dmcr_jax.train import evaluate as ev
+from dmcr_jax.train import loop, sac
 
 DEMO_SAC = sac.SACConfig(batch_size=32, hidden_dim=256, conv_channels=8)
 """The demo's learner: SAC+AUG with DrQ as in the paper, but batch 32 (paper: 256),
@@ -145,8 +145,8 @@ def run(demo: Demo = Demo(), out: str = "dmcr_demo", progress: bool = True) -> d
     progress: progress bars (else progress lines on stderr).
 
   Returns:
-    dict: files (name → path), train (`train.loop.train`'s summary), eval
-    (`train.evaluate.evaluate`'s results), first_return and last_return (mean
+    dict: files (name → path), train (`dmcr_jax.train.loop.train`'s summary), eval
+    (`dmcr_jax.train.evaluate.evaluate`'s results), first_return and last_return (mean
     return of the first and the last episodes on the learning curve), wall_s.
 
   Raises:
@@ -234,7 +234,7 @@ def report(demo: Demo, result: dict) -> str:
 
 def build_parser() -> argparse.ArgumentParser:
   """The `dmcr-demo` command line (defaults from `Demo`)."""
-  from train.__main__ import HelpFormatter
+  from dmcr_jax.train.__main__ import HelpFormatter
   d = Demo()
   p = argparse.ArgumentParser(
       prog="dmcr-demo", formatter_class=HelpFormatter,

@@ -1,22 +1,22 @@
 """The device driver: with the JAX renderer, a chunk of training is one XLA call.
 
-`train.loop.train` hands a run here when `TrainConfig.renderer` is "jax" and the
+`dmcr_jax.train.loop.train` hands a run here when `TrainConfig.renderer` is "jax" and the
 physics steps on the learner's device (`TrainConfig.physics_device`). The env is
 `dmcr_jax.make(..., renderer="jax")`, whose pure functional core
 (`dmcr_jax.jax_env.PixelEnv`) steps the physics, ray-casts the frames and stacks
 them on the device. A chunk of `TrainConfig.chunk_steps` vector steps of all K·N
-envs is one jitted `lax.scan` of `train.step`'s training step (act, learn, env
-step, store) — the functions the host driver (`train.loop`) calls, with the
+envs is one jitted `lax.scan` of `dmcr_jax.train.step`'s training step (act, learn, env
+step, store) — the functions the host driver (`dmcr_jax.train.loop`) calls, with the
 same RNG stream: given the same frames, both drivers train identical agents
 (`tests/test_train.py`). The update count owed and whether the buffers can be
-sampled are kept in the scan's carry (`train.step.owed_updates`, `can_sample`);
+sampled are kept in the scan's carry (`dmcr_jax.train.step.owed_updates`, `can_sample`);
 the number of update pairs of a step is dynamic (a loop of that many pairs).
 
 Between chunks the host writes the finished episodes to log.csv (each with the
 metrics of the latest updates at its step), moves the progress bar, saves
 checkpoints (at the first chunk end at or past each `checkpoint_every`) and
 checks the stop flag (SIGINT/SIGTERM); configuration, the log, checkpoints,
-resume (agents, step and key; not the buffers) and the summary are `train.loop`'s.
+resume (agents, step and key; not the buffers) and the summary are `dmcr_jax.train.loop`'s.
 The run's last chunk is shortened to end at `steps` (one more compilation when
 `steps` is not a multiple of `chunk_steps × num_envs`).
 
@@ -34,9 +34,9 @@ import numpy as np
 from flax import struct
 
 from dmcr_jax import jax_env
-from train import loop
-from train import step as train_step
-from train.loop import TrainConfig
+from dmcr_jax.train import loop
+from dmcr_jax.train import step as train_step
+from dmcr_jax.train.loop import TrainConfig
 
 
 @struct.dataclass
@@ -44,12 +44,12 @@ class Carry:
   """What one chunk hands the next (a frozen pytree; donated between chunks).
 
   Attributes:
-    learner: the `train.step.Learner` of the K agents.
+    learner: the `dmcr_jax.train.step.Learner` of the K agents.
     env: the `jax_env.PixelState` of the K·N envs (agent k acts in envs k·N …).
     owed: float32 updates owed and not yet run.
     ready: bool, every buffer could be sampled at some step.
     updates_from: int32, transitions per agent before which no update is owed
-      (`train.loop.updates_from`; traced, so fresh and resumed runs share one
+      (`dmcr_jax.train.loop.updates_from`; traced, so fresh and resumed runs share one
       compilation).
   """
   learner: train_step.Learner
@@ -60,7 +60,7 @@ class Carry:
 
 
 def vector_step(penv: jax_env.PixelEnv, c: Carry, spec: train_step.StepSpec):
-  """One training step of every agent's N envs (`train.step`'s module doc)."""
+  """One training step of every agent's N envs (`dmcr_jax.train.step`'s module doc)."""
   learner, action, env_action = train_step.act(c.learner, c.env.obs, spec)
   owed, ready, pairs = train_step.plan_updates(
       c.owed, c.ready, c.learner.step, lambda: train_step.can_sample(learner.buffers), spec,

@@ -36,7 +36,7 @@ E_G against the number of training looks (`few_shot.json`, `few_shot.md`,
 `few_shot.png`), with the zero-shot agents' (levels:1, dm_control's look) "all"
 returns as reference lines where the run has them.
 
-    dmcr-evaluate runs/cartpole-balance-drq            # or: python -m train.evaluate …
+    dmcr-evaluate runs/cartpole-balance-drq            # or: python -m dmcr_jax.train.evaluate …
     dmcr-evaluate runs/cartpole-balance-drq --invariance --attention --video
 """
 
@@ -54,8 +54,8 @@ import numpy as np
 
 from dmcr_jax import SeedRange
 from dmcr_jax.checks import positive_int
-from train import loop, paper_results, sac
-from train.step import to_env_action
+from dmcr_jax.train import loop, paper_results, sac
+from dmcr_jax.train.step import to_env_action
 
 FACTOR_CONDITIONS: tuple[str, ...] = ("light", "camera", "body", "floor", "background",
                                       "target", "reflectance")
@@ -633,7 +633,7 @@ def check_run(run_dir: str, agents: list[int] | None) -> loop.TrainConfig:
 def main(argv=None) -> None:
   """`dmcr-evaluate RUN_DIR [options]`."""
   from dmcr_jax.visuals.tiled import QUALITY
-  from train.__main__ import HelpFormatter
+  from dmcr_jax.train.__main__ import HelpFormatter
   d = EvalConfig()
   p = argparse.ArgumentParser(prog="dmcr-evaluate", description=__doc__.splitlines()[0],
                               formatter_class=HelpFormatter)
@@ -694,7 +694,7 @@ def main(argv=None) -> None:
       if len({r["train_look"] for r in summary["agents"]}) > 1:
         print(few_shot_markdown(summary, few_shot_rows(summary)))
         print(f"wrote {out}/few_shot.png, few_shot.md and few_shot.json")
-    from train import analysis
+    from dmcr_jax.train import analysis
     first = (agents or [0])[0]
     extra = dict(seed=cfg.seed, quality=cfg.quality, workers=cfg.workers)
     if a.invariance:

@@ -1,12 +1,12 @@
 """The training run (SAC+AUG, CURL, SAC+AE): K agents, each acting in its own N pixel envs.
 
 `train` builds one `dmcr_jax.make` env of K·N envs for all agents (agent k acts
-in envs k·N … k·N + N − 1) and drives `train.step`'s training step around it
+in envs k·N … k·N + N − 1) and drives `dmcr_jax.train.step`'s training step around it
 (the host driver): per vector step, `act` (jitted), the env's `step_async`
 (physics dispatched), `learn` (the updates owed, dispatched: the accelerator
 runs them while the env steps), the env's `step_wait` (rendering), `store`
 (jitted, buffers donated). With the JAX renderer and the physics on the same
-device, `train.device_loop` (the device driver) scans chunks of the same step as
+device, `dmcr_jax.train.device_loop` (the device driver) scans chunks of the same step as
 single XLA calls instead. Both drivers share this module's config, log,
 checkpoints, resume and summary.
 
@@ -52,7 +52,7 @@ transition.
 
 Agent batching (`agent_loop`): "vmap" batches the K agents' updates, "map" runs
 them one after the other in the same call; None picks "map" on accelerators and
-"vmap" on CPU (`train.step`).
+"vmap" on CPU (`dmcr_jax.train.step`).
 
 Update chunks: on accelerators the update pairs owed at a step run as one
 jitted loop; on CPU, where XLA runs a loop body several times slower than the
@@ -87,8 +87,8 @@ import numpy as np
 from dmcr_jax.checks import positive_int
 from dmcr_jax.env import RENDERERS, check_renderer_name  # noqa: F401 (RENDERERS: for the CLIs)
 from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, SeedRange
-from train import replay, sac
-from train import step as train_step
+from dmcr_jax.train import replay, sac
+from dmcr_jax.train import step as train_step
 
 
 AGENT_LOOPS = ("vmap", "map")
@@ -133,7 +133,7 @@ class TrainConfig:
     agent_loop: "vmap" or "map", how the K agents' updates are batched; None picks
       by backend (module doc).
     renderer: "pool" (the CPU render pool; this module's host loop) or "jax" (the
-      JAX ray caster; `train.device_loop` runs chunks of training as single XLA
+      JAX ray caster; `dmcr_jax.train.device_loop` runs chunks of training as single XLA
       calls).
     chunk_steps: with the device driver (renderer "jax", physics on the device),
       vector steps (of all envs) per XLA call; logs, checkpoints and the stop
@@ -183,7 +183,7 @@ class TrainConfig:
 
   def device_driver(self) -> bool:
     """Whether `train` runs this config with the device driver
-    (`train.device_loop`: the JAX renderer with the physics on the learner's
+    (`dmcr_jax.train.device_loop`: the JAX renderer with the physics on the learner's
     device; one device, no env groups) rather than the host loop."""
     return self.renderer == "jax" and self.physics_device() is None
 
@@ -341,7 +341,7 @@ def check_resume(saved: TrainConfig, cfg: TrainConfig) -> None:
         f"resume: the config differs from the run's config.json in {cfg.out_dir} in "
         + ", ".join(f"{k} ({new[k]!r}, the run has {old[k]!r})" for k in differ)
         + f"; a resumed run keeps its settings (only {', '.join(RESUMABLE)} may change): "
-        "use `train.loop.load_config(out_dir)`, or start a new run in another out_dir")
+        "use `dmcr_jax.train.loop.load_config(out_dir)`, or start a new run in another out_dir")
 
 
 # Devices ----------------------------------------------------------------------------
@@ -743,7 +743,7 @@ def updates_from(cfg: TrainConfig, start: int) -> int:
 
 
 def step_spec(cfg: TrainConfig, env) -> train_step.StepSpec:
-  """The `train.step.StepSpec` of a run on `env` (its action bounds)."""
+  """The `dmcr_jax.train.step.StepSpec` of a run on `env` (its action bounds)."""
   on_cpu = jax.default_backend() == "cpu"
   return train_step.StepSpec(
       agents=len(cfg.agents()), num_envs=cfg.num_envs, warmup_steps=int(cfg.warmup_steps),
@@ -827,7 +827,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
   in each part, "host_seconds", and in the env's parts, "env_seconds", over the
   whole run and, under "steady", from the first episode end past the warm-up) and the
   checkpoints. With the JAX renderer and the
-  physics on the learner's device the run is `train.device_loop.train` (same
+  physics on the learner's device the run is `dmcr_jax.train.device_loop.train` (same
   outputs).
 
   Raises:
@@ -843,7 +843,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
   if note:
     print(f"{cfg.task}: {note}", file=sys.stderr, flush=True)
   if cfg.device_driver():
-    from train import device_loop
+    from dmcr_jax.train import device_loop
     return device_loop.train(cfg, resume=resume, progress=progress)
   manager = open_run(cfg, resume)
   groups = cfg.env_groups
@@ -864,7 +864,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
     physics_first = physics_device is None or on_cpu
 
     def learn(learner, owed, ready, step):
-      """`train.step.learn` with the pairs planned at `step` (host counters)."""
+      """`dmcr_jax.train.step.learn` with the pairs planned at `step` (host counters)."""
       owed, ready, pairs = train_step.plan_updates(
           owed, ready, step, lambda: train_step.can_sample_jit(learner.buffers), spec,
           updates_from=updates_from(cfg, start))

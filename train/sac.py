@@ -31,12 +31,12 @@ stay cheap. The losses, for a batch of B transitions (o, a, r, d, o′):
 In an update with ``update_actor=True`` the critic steps first; the actor then uses
 the updated encoder and critic (as SAC-AE, CURL and DrQ do), then α, then targets.
 
-CURL (``algo="curl"``, `train.curl`): instead of β mixing, every row of o and o′ is
+CURL (``algo="curl"``, `dmcr_jax.train.curl`): instead of β mixing, every row of o and o′ is
 a random crop of the larger rendered observation (anchor, o′), the SAC losses
 above run on them (λ = 0), and after the targets one more Adam step on the
 encoder and the bilinear W minimises InfoNCE between the anchors (online
 encoder) and independent positive crops (target encoder, no gradient). SAC+AE
-(``algo="sac_ae"``, `train.sac_ae`): the SAC losses on the (un-augmented by
+(``algo="sac_ae"``, `dmcr_jax.train.sac_ae`): the SAC losses on the (un-augmented by
 default) batch, then one Adam step on the encoder and the decoder on the
 reconstruction loss. Both auxiliary steps run every update, as in the original
 code, with their own Adam states (`aux_optimizer`).
@@ -54,10 +54,10 @@ import jax.numpy as jnp
 import optax
 
 from dmcr_jax import augment
-from train import curl, sac_ae
-from train.networks import (LOG_STD_MAX, LOG_STD_MIN, Actor, Blocks, Critic, Decoder,
+from dmcr_jax.train import curl, sac_ae
+from dmcr_jax.train.networks import (LOG_STD_MAX, LOG_STD_MIN, Actor, Blocks, Critic, Decoder,
                             Encoder, encoder_input, encoder_sides)
-from train.replay import Batch  # what `replay.sample` returns and `update` consumes
+from dmcr_jax.train.replay import Batch  # what `replay.sample` returns and `update` consumes
 
 Params = Any
 Metrics = dict[str, jax.Array]
@@ -102,8 +102,8 @@ class SACConfig:
 
   Attributes:
     algo: "sac_aug" (the paper's SAC+AUG, default), "curl" (SAC with CURL's
-      contrastive loss, `train.curl`) or "sac_ae" (SAC with SAC+AE's decoder,
-      `train.sac_ae`).
+      contrastive loss, `dmcr_jax.train.curl`) or "sac_ae" (SAC with SAC+AE's decoder,
+      `dmcr_jax.train.sac_ae`).
     batch_size: transitions per update (256; SAC+AE 128).
     gamma: discount factor (.99).
     critic_lr: Adam learning rate of the critic heads (1e-3).
@@ -365,7 +365,7 @@ def alpha_optimizer(config: SACConfig) -> optax.GradientTransformation:
 
 def aux_optimizer(config: SACConfig) -> optax.GradientTransformation | None:
   """The auxiliary step's optimizer, its own Adam states as in the original code:
-  the auxiliary task's `optimizer` (`train.curl`, `train.sac_ae`); None for SAC+AUG."""
+  the auxiliary task's `optimizer` (`dmcr_jax.train.curl`, `dmcr_jax.train.sac_ae`); None for SAC+AUG."""
   task = AUX_TASKS.get(config.algo)
   return None if task is None else task.optimizer(config)
 
@@ -759,7 +759,7 @@ def update(agent: AgentState, batch: Batch, key: jax.Array, config: SACConfig, *
            update_actor: bool) -> tuple[AgentState, Metrics]:
   """One learner update (pure, jittable; `config` and `update_actor` static).
 
-  Augments and β-mixes the batch (CURL: crops it, `train.curl.crops`), takes one
+  Augments and β-mixes the batch (CURL: crops it, `dmcr_jax.train.curl.crops`), takes one
   Adam step of the encoder and critic on L_encoder = L_critic + L_λ; with
   `update_actor`, then one actor step on L_actor (with the new encoder and
   critic), one log α step on L_α, and the Polyak target updates (module

@@ -13,9 +13,9 @@ optimizer adds weight decay λ_w·θ to its gradient (λ_w = 1e-7, PyTorch Adam'
 ``weight_decay``). L_rec + the latent penalty train the encoder and the decoder
 with their own Adam step after the SAC step, every update.
 
-The auxiliary task's interface, shared with `train.curl`: `PARTNER` (the
+The auxiliary task's interface, shared with `dmcr_jax.train.curl`: `PARTNER` (the
 parameters trained beside the encoder), `init_partner`, `optimizer` and
-`aux_loss`. The wiring into the learner is in `train.sac`.
+`aux_loss`. The wiring into the learner is in `dmcr_jax.train.sac`.
 """
 
 from __future__ import annotations
@@ -92,9 +92,9 @@ def aux_loss(aux_params, agent, obs: jax.Array, aux_input: jax.Array, key: jax.A
 
   Args:
     aux_params: ``{"encoder": …, "decoder": …}``, the differentiated parameters.
-    agent: the `train.sac.AgentState` (its encoder and decoder modules).
+    agent: the `dmcr_jax.train.sac.AgentState` (its encoder and decoder modules).
     obs: the critic's observations (unused: the signature shared with
-      `train.curl.aux_loss`).
+      `dmcr_jax.train.curl.aux_loss`).
     aux_input: uint8 (B, H, W, C), the observations to reconstruct.
     key: a `jax.random` key for the target's dither.
     config: the hyperparameters (`decoder_bits`, `decoder_latent_lambda`).

@@ -28,12 +28,12 @@ The state between steps is one `Learner` (a frozen pytree). Its key is split by
 `act` and by `learn`, every step, whether or not updates run, so one seed gives
 one RNG stream whichever driver runs the step.
 
-The drivers: `train.loop` (host driver) jits `act`, `learn` and `store` around a
+The drivers: `dmcr_jax.train.loop` (host driver) jits `act`, `learn` and `store` around a
 gymnasium vector env (the render pool, or the JAX renderer with the physics on
 the host CPU) and launches `learn` from a second thread while its own steps the
 env (`step_async`, `step_wait`), so the accelerator runs the updates while the
 env steps;
-`train.device_loop` (device driver) scans them around `jax_env.PixelEnv.step` in
+`dmcr_jax.train.device_loop` (device driver) scans them around `jax_env.PixelEnv.step` in
 one XLA call per chunk of steps.
 
 Agent batching (`StepSpec.agent_loop`): "vmap" runs the K agents' updates as one
@@ -53,7 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from train import replay, sac
+from dmcr_jax.train import replay, sac
 
 
 @struct.dataclass

@@ -12,8 +12,8 @@ import collections, threading, time
 import jax, jax.numpy as jnp, numpy as np
 import dmcr_jax
 from dmcr_jax import env as env_mod, jax_env
-from train import sac, step as train_step
-from benchmarks.learner import filled_buffers, _agents
+from dmcr_jax.train import sac, step as train_step
+from dmcr_jax.benchmarks.learner import filled_buffers, _agents
 
 cfg = sac.SACConfig(compute_dtype="bfloat16")
 spec = train_step.StepSpec(agents=1, num_envs=16, warmup_steps=0, utd=1.0, sac=cfg,

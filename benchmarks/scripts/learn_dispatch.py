@@ -1,11 +1,11 @@
-"""Experiment: how long the host is held by dispatching `train.step.learn_jit`, against the
+"""Experiment: how long the host is held by dispatching `dmcr_jax.train.step.learn_jit`, against the
 call's whole time, for 1 and 8 update pairs per call (the XLA flags in XLA_FLAGS apply).
 
 If dispatching an update call holds the host thread for a large part of the call's GPU
 time (kernel launches, loop conditions read back), the host driver cannot step the env
 meanwhile. One JSON line per pair count on stdout:
 
-    PYTHONPATH=$PWD python3 benchmarks/scripts/learn_dispatch.py
+    python3 benchmarks/scripts/learn_dispatch.py
 """
 import json
 import os
@@ -14,9 +14,9 @@ import time
 import jax
 
 import dmcr_jax  # noqa: F401 (sets MUJOCO_GL and the XLA:CPU flag before JAX starts)
-from benchmarks.learner import _agents, filled_buffers
-from train import sac
-from train import step as train_step
+from dmcr_jax.benchmarks.learner import _agents, filled_buffers
+from dmcr_jax.train import sac
+from dmcr_jax.train import step as train_step
 
 cfg = sac.SACConfig(compute_dtype="bfloat16")
 spec = train_step.StepSpec(agents=1, num_envs=16, warmup_steps=0, utd=1.0, sac=cfg,

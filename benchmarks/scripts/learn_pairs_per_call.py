@@ -1,9 +1,9 @@
-"""Experiment: seconds per train.step.learn_jit call against update pairs per call (per-call overhead)."""
+"""Experiment: seconds per dmcr_jax.train.step.learn_jit call against update pairs per call (per-call overhead)."""
 import time, json
 import jax
 import dmcr_jax  # noqa: F401 (sets MUJOCO_GL and the XLA:CPU flag before JAX starts)
-from train import sac, step as train_step
-from benchmarks.learner import filled_buffers, _agents
+from dmcr_jax.train import sac, step as train_step
+from dmcr_jax.benchmarks.learner import filled_buffers, _agents
 cfg = sac.SACConfig(compute_dtype="bfloat16")
 spec = train_step.StepSpec(agents=1, num_envs=16, warmup_steps=0, utd=1.0, sac=cfg, agent_loop="map", low=(-1.0,), high=(1.0,))
 learner = train_step.init_learner(_agents(1, (84, 84, 9), 6, cfg), filled_buffers(1, 100_000, 84, 3, 6), jax.random.key(0), 0, spec)

@@ -3,8 +3,8 @@ import threading, time
 import jax, numpy as np
 import dmcr_jax  # noqa: F401 (sets MUJOCO_GL and the XLA:CPU flag before JAX starts)
 from dmcr_jax import models, physics_env
-from train import sac, step as train_step
-from benchmarks.learner import filled_buffers, _agents
+from dmcr_jax.train import sac, step as train_step
+from dmcr_jax.benchmarks.learner import filled_buffers, _agents
 cfg = sac.SACConfig(compute_dtype="bfloat16")
 spec = train_step.StepSpec(agents=1, num_envs=16, warmup_steps=0, utd=1.0, sac=cfg, agent_loop="map", low=(-1.0,), high=(1.0,))
 agents = _agents(1, (84, 84, 9), 2, cfg)

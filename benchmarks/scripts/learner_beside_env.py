@@ -7,7 +7,7 @@ workers' GL contexts and the learner's CUDA context, one CUDA stream), this show
 how much, and in which of the env's parts (`env.timings`: physics, transfer, render,
 copy, in ms per agent step).
 
-    PYTHONPATH=$PWD MUJOCO_GL=egl python3 benchmarks/scripts/learner_beside_env.py \\
+    MUJOCO_GL=egl python3 benchmarks/scripts/learner_beside_env.py \\
         [--task ball_in_cup-catch] [--num-envs 16] [--renderer pool] [--seconds 10] \\
         [--gl osmesa] [--workers 16]
 
@@ -22,9 +22,9 @@ import jax
 import numpy as np
 
 import dmcr_jax
-from benchmarks.learner import _agents, filled_buffers
-from train import sac
-from train import step as train_step
+from dmcr_jax.benchmarks.learner import _agents, filled_buffers
+from dmcr_jax.train import sac
+from dmcr_jax.train import step as train_step
 
 
 def learner_loop(seconds: float, pairs: int = 8):

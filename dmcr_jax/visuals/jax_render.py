@@ -38,7 +38,7 @@ The floor texture's origin (the plane's (−x, +y) corner) is matched to
 
 Parity with MuJoCo's renderer (mean absolute pixel difference per frame and
 per-body silhouette IoU against its segmentation render, per domain) is measured by
-`benchmarks.jax_render_parity`; its table is benchmarks/results/jax_render_parity_cpu.md.
+`dmcr_jax.benchmarks.jax_render_parity`; its table is benchmarks/results/jax_render_parity_cpu.md.
 The frames differ most where MuJoCo's per-vertex lighting and tessellation show:
 walker's reflection and shadow edges, reacher's spotlight low over the floor, and
 the edge pixels of small spheres and ellipsoids.

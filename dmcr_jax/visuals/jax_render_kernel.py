@@ -18,7 +18,7 @@ Each program also skips what none of its pixels needs (`skip_empty`, the default
 the opaque shading of an all-sky block, the sky of an all-surface block, the floor's
 reflection without floor pixels, the transparent layers without transparent hits).
 
-`python -m benchmarks.jax_render --mode check` compares the kernel's frames with
+`python -m dmcr_jax.benchmarks.jax_render --mode check` compares the kernel's frames with
 the XLA path's on a GPU; benchmarks/results/jax_render_h100.md holds that check, the
 frames/s of both paths and the kernel's compile time, which is its cost (the
 per-pixel code is unrolled over the scene's objects).
