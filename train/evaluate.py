@@ -11,13 +11,15 @@ evaluated
 Conditions change factors away from dm_control's default look, as in the paper,
 whose agents trained on it (visual seed 0). Test looks are drawn from the
 held-out `dmcr_jax.TEST_SEEDS`, which no training range can overlap, with a NumPy
-generator seeded by `EvalConfig.seed`. Every condition uses the same initial
-states (one env of V·D envs, reset with the same key), so conditions differ only
-in their looks, and all its episodes run as one batch; the looks are swapped with
-`PixelVectorEnv.set_visuals` without recompiling the physics. When the training
-look is seed 0 (dm_control's, which "none" also shows), the train episodes are the
-first `train_episodes` of the "none" batch (same looks, same initial states), so
-that batch runs once.
+generator seeded by `EvalConfig.seed`. All agents run in one env, a block of V·D
+envs per agent: env i of every block shows the same look and starts from the same
+initial state (the same per-env reset seed, `reset_seeds`), so agents and
+conditions differ only in the policy and the looks, and every condition's episodes
+of all agents run as one batch; the looks are swapped with
+`PixelVectorEnv.set_visuals` without recompiling the physics. When an agent's
+training look is seed 0 (dm_control's, which "none" also shows), its train
+episodes are the first `train_episodes` of its "none" block (same looks, same
+initial states); the train batch runs only for the agents that need it.
 
 The generalisation error of a condition is E_G = (train − test) / train (paper
 Sec. 3). Outputs: a JSON file, a Markdown table laid out like the paper's Table 4
@@ -153,13 +155,36 @@ def greedy_action(agent: sac.AgentState, obs: jax.Array) -> jax.Array:
   return sac.act(agent, obs, None, deterministic=True)
 
 
-def run_episodes(env, policy, seed: int) -> np.ndarray:
+@jax.jit
+def greedy_actions(agents: sac.AgentState, obs: jax.Array) -> jax.Array:
+  """`greedy_action` of K stacked agents, each on its own block of N envs.
+
+  Args:
+    agents: K agents stacked on a leading axis.
+    obs: uint8 observations (K·N, H, W, C), agent k's in rows [k·N, (k+1)·N).
+
+  Returns:
+    (K·N, A) actions in [−1, 1], in the order of `obs`.
+  """
+  k = agents.step.shape[0]
+  blocks = obs.reshape((k, obs.shape[0] // k) + obs.shape[1:])
+  actions = jax.vmap(greedy_action)(agents, blocks)
+  return actions.reshape((obs.shape[0],) + actions.shape[2:])
+
+
+def reset_seeds(n: int, seed: int) -> np.ndarray:
+  """The per-env reset seeds of one agent's block, (n,) uint32 in [0, 2**32): env i's
+  initial states depend on (`seed`, i) alone, whatever the number of agents."""
+  return np.random.default_rng((seed, 1)).integers(0, 2**32, n, dtype=np.uint32)
+
+
+def run_episodes(env, policy, seed) -> np.ndarray:
   """One episode in every env of `env`, all starting together; their returns (N,).
 
   Args:
     env: a `PixelVectorEnv`.
     policy: uint8 observations (N, H, W, C) → actions in [−1, 1], (N, A).
-    seed: the reset seed (fixes the initial states).
+    seed: the reset seed (fixes the initial states): an int, or one per env.
   """
   obs, _ = env.reset(seed=seed)
   low, high = env.single_action_space.low, env.single_action_space.high
@@ -235,60 +260,63 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
   several = len(loop.parse_visual_seeds(train_cfg.visual_seeds)) > 1
 
   shares = {a: "none" in conditions and _is_default_look(looks[a]) for a in chosen}
+  k = len(chosen)
+  seeds = np.tile(reset_seeds(n, cfg.seed), k)
+  agents_chosen = jax.tree.map(lambda x: x[np.asarray(chosen)], stacked)
+  policy = lambda obs: greedy_actions(agents_chosen, obs)
   t_start = time.perf_counter()
-  env = dmcr_jax.make(train_cfg.task, num_envs=n, visual_seeds=per_env_seeds,
+  env = dmcr_jax.make(train_cfg.task, num_envs=k * n, visual_seeds=np.tile(per_env_seeds, k),
                       vary=train_cfg.vary, frame_skip=train_cfg.action_repeat,
                       frame_stack=train_cfg.frame_stack, image_size=train_cfg.image_size,
                       seed=cfg.seed, **render_options(cfg))
+  need_train = [a for a in chosen if not shares[a]]
   bar = None
   if progress:
     from tqdm.auto import tqdm
-    bar = tqdm(total=sum(len(conditions) + (not shares[a]) for a in chosen),
-               desc="evaluate", unit="condition")
-  results = []
+    bar = tqdm(total=len(conditions) + bool(need_train), desc="evaluate", unit="condition")
+
+  def run(visual_seeds, vary: str, label: str) -> tuple[np.ndarray, float]:
+    """Every agent's block under these looks: returns (K, n) and the wall time."""
+    env.set_visuals(visual_seeds, vary=vary)
+    t0 = time.perf_counter()
+    returns = run_episodes(env, policy, seeds).reshape(k, n)
+    if bar is not None:
+      bar.update(1)
+      bar.set_postfix(condition=label, ret=f"{returns.mean():.0f}")
+    return returns, time.perf_counter() - t0
+
   with env:
-    for a in chosen:
-      agent = jax.tree.map(lambda x, a=a: x[a], stacked)
-      policy = lambda obs, agent=agent: greedy_action(agent, obs)
-      seed, aug = specs[a]
-      algo = train_cfg.sac.algo
-      share_none = shares[a]
-      row = dict(agent=a, seed=seed, aug=aug, algo=algo,
-                 method=paper_results.method_name(algo, aug),
-                 train_look=loop.look_label(looks[a]), looks=loop.num_looks(looks[a]),
-                 conditions={})
-      done = {}
-      if share_none:
-        # The training look is the default one, which "none" shows too, and the
-        # same reset seed gives the same initial states: the train episodes are
-        # the first ones of the "none" batch.
-        env.set_visuals(per_env_seeds, vary="none")
-        t0 = time.perf_counter()
-        done["none"] = run_episodes(env, policy, cfg.seed), time.perf_counter() - t0
-        train_returns, train_wall = done["none"][0][:cfg.train_episodes], done["none"][1]
-      else:
-        env.set_visuals(train_look_seeds(looks[a], n, cfg.seed), vary=train_cfg.vary)
-        t0 = time.perf_counter()
-        train_returns = run_episodes(env, policy, cfg.seed)[:cfg.train_episodes]
-        train_wall = time.perf_counter() - t0
-        if bar is not None:
-          bar.update(1)
-      row["train"] = dict(mean=float(train_returns.mean()), std=float(train_returns.std()),
-                          episodes=train_returns.tolist(), wall_s=train_wall)
-      for condition in conditions:
-        if condition not in done:
-          env.set_visuals(per_env_seeds, vary="none" if condition == "none" else condition)
-          t0 = time.perf_counter()
-          done[condition] = run_episodes(env, policy, cfg.seed), time.perf_counter() - t0
-        returns, wall = done[condition]
-        mean = float(returns.mean())
-        row["conditions"][condition] = dict(
-            mean=mean, std=float(returns.std()), episodes=returns.tolist(),
-            e_g=generalization_error(row["train"]["mean"], mean), wall_s=wall)
-        if bar is not None:
-          bar.update(1)
-          bar.set_postfix(agent=a, condition=condition, ret=f"{mean:.0f}")
-      results.append(row)
+    done = {}
+    for condition in conditions:
+      done[condition] = run(np.tile(per_env_seeds, k),
+                            "none" if condition == "none" else condition, condition)
+    if need_train:
+      # Agents that share "none" keep dm_control's look in their block (unused).
+      train_seeds = np.concatenate([per_env_seeds if shares[a] else
+                                    train_look_seeds(looks[a], n, cfg.seed) for a in chosen])
+      done["train"] = run(train_seeds, train_cfg.vary, "train")
+  results = []
+  for i, a in enumerate(chosen):
+    seed, aug = specs[a]
+    algo = train_cfg.sac.algo
+    row = dict(agent=a, seed=seed, aug=aug, algo=algo,
+               method=paper_results.method_name(algo, aug),
+               train_look=loop.look_label(looks[a]), looks=loop.num_looks(looks[a]),
+               conditions={})
+    # The training look is the default one, which "none" shows too, and the same
+    # reset seeds give the same initial states: the train episodes are the first
+    # ones of the agent's "none" block.
+    train, train_wall = done["none" if shares[a] else "train"]
+    train_returns = train[i, :cfg.train_episodes]
+    row["train"] = dict(mean=float(train_returns.mean()), std=float(train_returns.std()),
+                        episodes=train_returns.tolist(), wall_s=train_wall)
+    for condition in conditions:
+      returns, wall = done[condition]
+      mean = float(returns[i].mean())
+      row["conditions"][condition] = dict(
+          mean=mean, std=float(returns[i].std()), episodes=returns[i].tolist(),
+          e_g=generalization_error(row["train"]["mean"], mean), wall_s=wall)
+    results.append(row)
   if bar is not None:
     bar.close()
   summary = dict(run_dir=run_dir, task=train_cfg.task, checkpoint_step=step,
