@@ -4,7 +4,6 @@ import os
 import signal
 import time
 
-import numpy as np
 
 KILL, HANG, RAISE = 1, 2, 3
 

@@ -8,7 +8,6 @@ import copy
 import hashlib
 
 import jax
-import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
