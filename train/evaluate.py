@@ -261,11 +261,12 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
 
   shares = {a: "none" in conditions and _is_default_look(looks[a]) for a in chosen}
   k = len(chosen)
-  seeds = np.tile(reset_seeds(n, cfg.seed), k)
+  env_reset_seeds = np.tile(reset_seeds(n, cfg.seed), k)
+  test_looks = np.tile(per_env_seeds, k)
   agents_chosen = jax.tree.map(lambda x: x[np.asarray(chosen)], stacked)
   policy = lambda obs: greedy_actions(agents_chosen, obs)
   t_start = time.perf_counter()
-  env = dmcr_jax.make(train_cfg.task, num_envs=k * n, visual_seeds=np.tile(per_env_seeds, k),
+  env = dmcr_jax.make(train_cfg.task, num_envs=k * n, visual_seeds=test_looks,
                       vary=train_cfg.vary, frame_skip=train_cfg.action_repeat,
                       frame_stack=train_cfg.frame_stack, image_size=train_cfg.image_size,
                       seed=cfg.seed, **render_options(cfg))
@@ -279,7 +280,7 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
     """Every agent's block under these looks: returns (K, n) and the wall time."""
     env.set_visuals(visual_seeds, vary=vary)
     t0 = time.perf_counter()
-    returns = run_episodes(env, policy, seeds).reshape(k, n)
+    returns = run_episodes(env, policy, env_reset_seeds).reshape(k, n)
     if bar is not None:
       bar.update(1)
       bar.set_postfix(condition=label, ret=f"{returns.mean():.0f}")
@@ -288,8 +289,8 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
   with env:
     done = {}
     for condition in conditions:
-      done[condition] = run(np.tile(per_env_seeds, k),
-                            "none" if condition == "none" else condition, condition)
+      done[condition] = run(test_looks, "none" if condition == "none" else condition,
+                            condition)
     if need_train:
       # Agents that share "none" keep dm_control's look in their block (unused).
       train_seeds = np.concatenate([per_env_seeds if shares[a] else

@@ -862,12 +862,13 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
                                       key, start, spec)
     put = lambda x: put_agents(jnp.asarray(x), mesh)
     physics_first = physics_device is None or on_cpu
+    first_update = updates_from(cfg, start)
 
     def learn(learner, owed, ready, step):
       """`dmcr_jax.train.step.learn` with the pairs planned at `step` (host counters)."""
       owed, ready, pairs = train_step.plan_updates(
           owed, ready, step, lambda: train_step.can_sample_jit(learner.buffers), spec,
-          updates_from=updates_from(cfg, start))
+          updates_from=first_update)
       learner = train_step.learn_jit(learner, pairs=int(pairs), spec=spec, mesh=mesh,
                                      unroll=on_cpu)
       return learner, owed, ready
