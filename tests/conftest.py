@@ -24,13 +24,15 @@ def share_compilations() -> None:
   identical XLA program compiles once. Set before JAX is imported and inherited
   through the environment by xdist workers and subprocesses. A folder the user
   set (JAX_COMPILATION_CACHE_DIR) is kept; else a fresh one, removed at exit by
-  the process that made it.
+  the process that made it. Only programs that take a second or more to compile
+  are written: the thousands of small eager-op programs recompile faster than
+  they serialize, and each write is a call into XLA's executable serializer.
   """
   if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     folder = tempfile.mkdtemp(prefix="dmcr-jax-tests-")
     os.environ["JAX_COMPILATION_CACHE_DIR"] = folder
     atexit.register(shutil.rmtree, folder, ignore_errors=True)
-  os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+  os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "1")
 
 
 share_compilations()
