@@ -7,9 +7,13 @@ with `--run-full`. One JAX compilation cache serves the whole session
 (`share_compilations`)."""
 
 import atexit
+import gc
 import os
 import shutil
+import sys
 import tempfile
+
+import pytest
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
@@ -44,10 +48,27 @@ def pytest_addoption(parser):
                         "defaults, minutes each)")
 
 
+def _scope(item):
+  """An item's module and xdist group: the tests that share compiled programs."""
+  mark = item.get_closest_marker("xdist_group")
+  return item.nodeid.split("::", 1)[0], mark.args[0] if mark and mark.args else None
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_teardown(item, nextitem):
+  """After the last test of a module or xdist group (its fixtures finalized), drops
+  JAX's in-memory compilations: a worker would otherwise keep every program the
+  suite compiled (gigabytes by the end). Later tests that need one again load it
+  from the session's compilation cache."""
+  yield
+  if "jax" in sys.modules and (nextitem is None or _scope(item) != _scope(nextitem)):
+    sys.modules["jax"].clear_caches()
+    gc.collect()
+
+
 def pytest_collection_modifyitems(config, items):
   if config.getoption("--run-full"):
     return
-  import pytest
   skip = pytest.mark.skip(reason="a whole command at its defaults (minutes): pass "
                                  "--run-full to run it")
   for item in items:
