@@ -77,7 +77,7 @@ def test_bad_protocols_are_rejected():
 
 
 @pytest.mark.slow
-def test_the_jax_renderer_runs_the_same_protocol(run_dir, tmp_path):
+def test_the_jax_renderer_runs_the_same_protocol(run_dir, tmp_path, capsys):
   # The same protocol rendered by the JAX ray caster: the table has the same shape,
   # and says which renderer drew it. Sized as `dmcr-demo`'s evaluation in
   # test_demo.py (2 envs, same group and worker), which reuses its compilations.
@@ -92,6 +92,9 @@ def test_the_jax_renderer_runs_the_same_protocol(run_dir, tmp_path):
     assert np.isfinite(row["conditions"][c]["mean"])
   with open(tmp_path / "eval.md") as f:
     assert "rendered by the JAX ray caster" in f.read()
+  # Without a progress bar, a line per condition ("none" is the train look: 2 passes).
+  lines = [l for l in capsys.readouterr().err.splitlines() if l.startswith("evaluate: ")]
+  assert [l.split(" done ")[1].split(")")[0] for l in lines] == ["(1/2", "(2/2"], lines
 
 
 @pytest.mark.slow

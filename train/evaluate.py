@@ -233,7 +233,7 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
     cfg: the protocol's sizes and options.
     out_dir: where the results go (default `<run_dir>/eval`).
     agents: indices of the agents to evaluate (default: all).
-    progress: show a progress bar.
+    progress: show a progress bar (else a line per condition on stderr).
 
   Returns:
     The results (also in `<out_dir>/eval.json`, where an undefined E_G, NaN
@@ -271,7 +271,7 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
                       frame_stack=train_cfg.frame_stack, image_size=train_cfg.image_size,
                       seed=cfg.seed, **render_options(cfg))
   need_train = [a for a in chosen if not shares[a]]
-  bar = None
+  bar, passes = None, dict(done=0, total=len(conditions) + bool(need_train))
   if progress:
     from tqdm.auto import tqdm
     bar = tqdm(total=len(conditions) + bool(need_train), desc="evaluate", unit="condition")
@@ -281,10 +281,15 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
     env.set_visuals(visual_seeds, vary=vary)
     t0 = time.perf_counter()
     returns = run_episodes(env, policy, env_reset_seeds).reshape(k, n)
+    wall = time.perf_counter() - t0
     if bar is not None:
       bar.update(1)
       bar.set_postfix(condition=label, ret=f"{returns.mean():.0f}")
-    return returns, time.perf_counter() - t0
+    else:  # without a bar, a line per condition on stderr
+      passes["done"] += 1
+      print(f"evaluate: {label} done ({passes['done']}/{passes['total']}), mean return "
+            f"{returns.mean():.1f}, {wall:.0f} s", file=sys.stderr, flush=True)
+    return returns, wall
 
   with env:
     done = {}
@@ -686,7 +691,8 @@ def main(argv=None) -> None:
                  help="for the protocol: pool (MuJoCo's pixels) or jax (the JAX ray caster); "
                       "the extras render with the pool")
   p.add_argument("--out", default=None, help="default: RUN_DIR/eval")
-  p.add_argument("--no-progress", action="store_true", help="no progress bar")
+  p.add_argument("--no-progress", action="store_true",
+                 help="no progress bar: a line per condition on stderr")
   p.add_argument("--invariance", action="store_true",
                  help="also the encoder-invariance plot (paper Fig. 5) of the first agent")
   p.add_argument("--attention", action="store_true",
