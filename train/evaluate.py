@@ -274,7 +274,7 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
   bar, passes = None, dict(done=0, total=len(conditions) + bool(need_train))
   if progress:
     from tqdm.auto import tqdm
-    bar = tqdm(total=len(conditions) + bool(need_train), desc="evaluate", unit="condition")
+    bar = tqdm(total=passes["total"], desc="evaluate", unit="condition")
 
   def run(visual_seeds, vary: str, label: str) -> tuple[np.ndarray, float]:
     """Every agent's block under these looks: returns (K, n) and the wall time."""
