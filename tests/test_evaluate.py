@@ -94,7 +94,8 @@ def test_the_jax_renderer_runs_the_same_protocol(run_dir, tmp_path, capsys):
     assert "rendered by the JAX ray caster" in f.read()
   # Without a progress bar, a line per condition ("none" is the train look: 2 passes).
   lines = [l for l in capsys.readouterr().err.splitlines() if l.startswith("evaluate: ")]
-  assert [l.split(" done ")[1].split(")")[0] for l in lines] == ["(1/2", "(2/2"], lines
+  assert [l.split(",")[0] for l in lines] == ["evaluate: none done (1/2)",
+                                              "evaluate: all done (2/2)"], lines
 
 
 @pytest.mark.slow

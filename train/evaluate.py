@@ -271,23 +271,23 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
                       frame_stack=train_cfg.frame_stack, image_size=train_cfg.image_size,
                       seed=cfg.seed, **render_options(cfg))
   need_train = [a for a in chosen if not shares[a]]
-  bar, passes = None, dict(done=0, total=len(conditions) + bool(need_train))
+  bar, passes, finished = None, len(conditions) + bool(need_train), 0
   if progress:
     from tqdm.auto import tqdm
-    bar = tqdm(total=passes["total"], desc="evaluate", unit="condition")
+    bar = tqdm(total=passes, desc="evaluate", unit="condition")
 
   def run(visual_seeds, vary: str, label: str) -> tuple[np.ndarray, float]:
     """Every agent's block under these looks: returns (K, n) and the wall time."""
+    nonlocal finished
     env.set_visuals(visual_seeds, vary=vary)
     t0 = time.perf_counter()
     returns = run_episodes(env, policy, env_reset_seeds).reshape(k, n)
-    wall = time.perf_counter() - t0
+    wall, finished = time.perf_counter() - t0, finished + 1
     if bar is not None:
       bar.update(1)
       bar.set_postfix(condition=label, ret=f"{returns.mean():.0f}")
     else:  # without a bar, a line per condition on stderr
-      passes["done"] += 1
-      print(f"evaluate: {label} done ({passes['done']}/{passes['total']}), mean return "
+      print(f"evaluate: {label} done ({finished}/{passes}), mean return "
             f"{returns.mean():.1f}, {wall:.0f} s", file=sys.stderr, flush=True)
     return returns, wall
 
