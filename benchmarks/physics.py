@@ -14,6 +14,8 @@ compile), run time is the median of `--repeats` calls after `block_until_ready`.
         --solver-iterations 1 --ls-iterations 4   # mjx.benchmark's solver budget
     python -m dmcr_jax.benchmarks.physics --tasks walker-walk --sizes 8192 \
         --matmul-precision default   # JAX's precision: TensorFloat-32 products on an H100
+    JAX_PLATFORMS=cpu python -m dmcr_jax.benchmarks.physics --tasks walker-walk --sizes 16,32 \
+        --xla-defaults   # XLA:CPU's YNNPACK fusions on, as a plain `jax.jit` compiles them
 
 Each row is one JSON line (device kind, task, N, steps, solver budget, compile_s,
 run_s, physics_steps_per_s, and the baseline's numbers); a Markdown table is
@@ -39,9 +41,9 @@ from dmcr_jax import models
 from dmcr_jax.models import base
 
 
-def _compile(fn, *args):
+def _compile(fn, *args, options=None):
   t0 = time.perf_counter()
-  compiled = jax.jit(fn).lower(*args).compile()
+  compiled = jax.jit(fn, compiler_options=options or None).lower(*args).compile()
   return compiled, time.perf_counter() - t0
 
 
@@ -78,7 +80,7 @@ def bare_rollout(task: models.Task, n: int, k: int):
   return fn
 
 
-def _row(task: models.Task, n: int, k: int, parallel_compiles: int) -> dict:
+def _row(task: models.Task, n: int, k: int, parallel_compiles: int, options: dict) -> dict:
   return dict(
       bench="physics", device=jax.devices()[0].device_kind,
       platform=jax.default_backend(), host=platform.node(), cpus=os.cpu_count(),
@@ -86,13 +88,17 @@ def _row(task: models.Task, n: int, k: int, parallel_compiles: int) -> dict:
       solver_iterations=task.solver_iterations, ls_iterations=task.ls_iterations,
       matmul_precision=base.PHYSICS_MATMUL_PRECISION,
       concurrent_compiles=max(1, parallel_compiles),
-      xla_flags=os.environ.get("XLA_FLAGS", ""),
+      xla_flags=os.environ.get("XLA_FLAGS", ""), compiler_options=options,
       time_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
 
 
 def bench_tasks(names: list[str], sizes: list[int], k: int, repeats: int, baseline: bool,
-                parallel_compiles: int = 1, solver: tuple = (None, None)):
+                parallel_compiles: int = 1, solver: tuple = (None, None),
+                options: dict | None = None):
   """Benchmarks several tasks at every batch size; yields one row per (task, size).
+
+  `options` are the rollouts' XLA compile options (None: the physics' own,
+  `base.physics_compiler_options()`; {}: XLA's defaults).
 
   Each task's reset is compiled once at the largest size and sliced for smaller
   ones. All XLA compilations (resets, then rollouts) run in `parallel_compiles`
@@ -100,6 +106,7 @@ def bench_tasks(names: list[str], sizes: list[int], k: int, repeats: int, baseli
   the timed runs happen afterwards, one at a time.
   """
   tasks = [models.load(name, *solver) for name in names]
+  options = base.physics_compiler_options() if options is None else options
   key = jax.random.key(1)
   with ThreadPoolExecutor(max(1, parallel_compiles)) as pool:
     resets = list(pool.map(
@@ -113,12 +120,12 @@ def bench_tasks(names: list[str], sizes: list[int], k: int, repeats: int, baseli
         jobs.append((task, n, "task", task_rollout(task, n, k), state))
         if baseline:
           jobs.append((task, n, "bare", bare_rollout(task, n, k), state.data))
-    compiled = list(pool.map(lambda j: _compile(j[3], j[4], key), jobs))
+    compiled = list(pool.map(lambda j: _compile(j[3], j[4], key, options=options), jobs))
   rows = {}
   for (task, n, kind, _, arg), (fn, compile_s) in zip(jobs, compiled):
     run_s = statistics.median(R.time_calls(lambda: fn(arg, key), repeats=repeats))
     substeps = n * k * task.n_sub_steps
-    row = rows.setdefault((task.name, n), _row(task, n, k, parallel_compiles))
+    row = rows.setdefault((task.name, n), _row(task, n, k, parallel_compiles, options))
     if kind == "task":
       row.update(compile_s=round(compile_s, 3), run_s=run_s,
                  physics_steps_per_s=substeps / run_s, agent_steps_per_s=n * k / run_s)
@@ -135,8 +142,9 @@ def bench_tasks(names: list[str], sizes: list[int], k: int, repeats: int, baseli
                   baseline_throughput=bare)
 
 
-def _done(path: str | None, solver: tuple) -> set:
-  """(task, num_envs) pairs already in `path` for this device and solver budget."""
+def _done(path: str | None, solver: tuple, options: dict) -> set:
+  """(task, num_envs) pairs already in `path` for this device, solver budget,
+  precision and compile options."""
   if not path or not os.path.exists(path):
     return set()
   device = jax.devices()[0].device_kind
@@ -145,7 +153,8 @@ def _done(path: str | None, solver: tuple) -> set:
     task = models.load(r["task"], *solver)
     if (r["device"] == device and r.get("solver_iterations") == task.solver_iterations
         and r.get("ls_iterations") == task.ls_iterations
-        and r.get("matmul_precision", "default") == base.PHYSICS_MATMUL_PRECISION):
+        and r.get("matmul_precision", "default") == base.PHYSICS_MATMUL_PRECISION
+        and r.get("compiler_options", {}) == options):
       done.add((r["task"], r["num_envs"]))
   return done
 
@@ -157,6 +166,8 @@ def markdown(rows: list[dict]) -> str:
       ("solver it/ls",
        lambda r: f"{r.get('solver_iterations', '?')}/{r.get('ls_iterations', '?')}"),
       ("matmul precision", lambda r: r.get("matmul_precision", "default")),
+      ("XLA:CPU YNNPACK fusions",
+       lambda r: "off" if r.get("compiler_options") == base.NO_YNN_FUSIONS else "XLA's default"),
       ("envs", lambda r: f"{r['num_envs']:,}"),
       ("physics steps/s", lambda r: f"{r['physics_steps_per_s']:,.0f}"),
       ("bare MJX steps/s", lambda r: R.fmt(r.get("bare_physics_steps_per_s"), ",.0f")),
@@ -185,9 +196,13 @@ def main(argv=None) -> None:
                  choices=base.MATMUL_PRECISIONS,
                  help="precision of the physics' matrix products (default: %(default)s, the "
                       "physics' own; 'default' is JAX's: TensorFloat-32 on an H100)")
+  p.add_argument("--xla-defaults", action="store_true",
+                 help="compile the rollouts with XLA's default options instead of the "
+                      "physics' own (`models.base.physics_compiler_options`: XLA:CPU's "
+                      "YNNPACK fusions off)")
   p.add_argument("--out", default=None,
                  help="JSONL output path, appended to; (task, size) rows already there for "
-                      "this device, solver and matmul precision are skipped, so a cut-off run resumes "
+                      "this device, solver, matmul precision and compile options are skipped, so a cut-off run resumes "
                       "(a .md of all its rows is written beside)")
   args = p.parse_args(argv)
   with base.physics_matmul_precision(args.matmul_precision):
@@ -200,7 +215,8 @@ def _run(args) -> None:
     models.split_name(name)
   sizes = [int(s) for s in args.sizes.split(",")]
   solver = (args.solver_iterations, args.ls_iterations)
-  done = _done(args.out, solver)
+  options = {} if args.xla_defaults else base.physics_compiler_options()
+  done = _done(args.out, solver, options)
   todo = [n for n in names if not all((n, size) in done for size in sizes)]
   rows = []
   if len(todo) < len(names):
@@ -208,7 +224,7 @@ def _run(args) -> None:
   for i in range(0, len(todo), max(1, args.tasks_per_wave)):
     wave = todo[i:i + max(1, args.tasks_per_wave)]
     for row in bench_tasks(wave, sizes, args.steps, args.repeats, not args.no_baseline,
-                           args.parallel_compiles, solver):
+                           args.parallel_compiles, solver, options):
       R.emit(row, args.out)
       rows.append(row)
   if args.out:

@@ -79,6 +79,7 @@ from gymnasium.vector.utils import batch_space
 
 from dmcr_jax import jax_env, models, physics_env
 from dmcr_jax.checks import positive_int
+from dmcr_jax.models.base import physics_jit
 from dmcr_jax.visuals import render_model as rmod
 from dmcr_jax.visuals.factors import check_vary
 from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, EnvRanges, SeedRange
@@ -180,9 +181,9 @@ def _physics_fns(task, num_envs: int, frame_skip: int,
   the functions' last argument; a `SeedRange` or `EnvRanges` (seed_range) is static.
   """
   pick = (lambda arg: arg) if seed_range is None else (lambda arg: seed_range)
-  init = jax.jit(lambda key, arg: physics_env.init(task, pick(arg), key, num_envs))
-  step = jax.jit(lambda es, a, arg: physics_env.step(task, pick(arg), frame_skip, es, a),
-                 donate_argnums=(0,) if donate else ())
+  init = physics_jit(lambda key, arg: physics_env.init(task, pick(arg), key, num_envs))
+  step = physics_jit(lambda es, a, arg: physics_env.step(task, pick(arg), frame_skip, es, a),
+                     donate_argnums=(0,) if donate else ())
   return init, step
 
 

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dmcr_jax import models
+from dmcr_jax.models.base import physics_jit
 
 DEFAULT_TASKS = ("cartpole-balance", "pendulum-swingup", "reacher-easy")
 
@@ -38,7 +39,7 @@ def make_rollout(task: models.Task, num_envs: int, steps: int):
         body, (state, jnp.zeros(num_envs)), jax.random.split(k_act, steps))
     return returns, state.obs
 
-  return jax.jit(rollout)
+  return physics_jit(rollout)
 
 
 def run(names, num_envs: int, steps: int, seed: int = 0) -> list[dict]:

@@ -52,3 +52,24 @@ def test_the_flag_is_added_once_and_a_users_choice_is_kept():
   assert run(None) == f"{flag}=false"
   assert run("--xla_dump_to=/tmp/x") == f"--xla_dump_to=/tmp/x {flag}=false"
   assert run(f"{flag}=true") == f"{flag}=true"
+
+
+@pytest.mark.slow
+def test_env_physics_compiles_without_ynnpack_fusions():
+  """The env's jitted physics takes `physics_compiler_options` (`dmcr_jax.models.base`):
+  at 32 ball_in_cup envs, past the size where XLA:CPU's default hands products to
+  YNNPACK, the compiled step holds no YNNPACK fusion."""
+  import jax
+  import numpy as np
+
+  from dmcr_jax import env as env_module
+  from dmcr_jax import models
+  from dmcr_jax.models import base
+  assert base.physics_compiler_options() == base.NO_YNN_FUSIONS  # this jaxlib knows it
+  task = models.load("ball_in_cup-catch")
+  init, step = env_module._physics_fns(task, 32, 4, None, False)
+  seeds = np.zeros(32, np.int32)
+  states = jax.eval_shape(init, jax.random.key(0), seeds)
+  actions = jax.ShapeDtypeStruct((32, task.action_size), np.float32)
+  hlo = step.lower(states, actions, seeds).compile().as_text()
+  assert "ynn_fusion" not in hlo

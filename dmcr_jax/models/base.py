@@ -30,6 +30,14 @@ benchmarks/results/solver_budget_*.md). `load(name, solver_iterations=...,
 ls_iterations=...)` overrides either budget; smaller solver budgets are faster but
 do drift (mjx.benchmark's 1 / 4 makes walker diverge).
 
+Compiling physics for the CPU: `physics_jit` is `jax.jit` with
+`physics_compiler_options()`, which turn off XLA:CPU's YNNPACK library fusions.
+Past a batch size that depends on the model and the CPU, XLA hands the physics'
+batched small matrix products to YNNPACK, which computes them several times slower
+than XLA's own loops: the physics of a larger batch then costs more per env than
+that of a smaller one (benchmarks/results/physics_cpu_ynn.md). The option only affects
+XLA's CPU backend; networks and renderers keep XLA's default.
+
 Matrix-product precision: every physics part (`sync`, `physics_steps` and a
 task's `initialize`, `forward`, `advance`, `observe`) is traced under
 `jax.default_matmul_precision(PHYSICS_MATMUL_PRECISION)` ("highest": float32
@@ -199,6 +207,31 @@ def physics_matmul_precision(precision: str):
     yield
   finally:
     PHYSICS_MATMUL_PRECISION = saved
+
+
+NO_YNN_FUSIONS = {"xla_cpu_experimental_ynn_fusion_type": ""}
+"""XLA compile options with an empty list of YNNPACK fusion types (module doc)."""
+
+
+@functools.cache
+def physics_compiler_options() -> dict[str, str]:
+  """`jax.jit`'s `compiler_options` for functions that step MJX physics.
+
+  `NO_YNN_FUSIONS` when this jaxlib knows the option (checked once, by compiling
+  an identity for JAX's default backend), else {}. The options are read by XLA's
+  CPU backend only, so a jit for any device may take them.
+  """
+  try:
+    jax.jit(lambda x: x, compiler_options=NO_YNN_FUSIONS).lower(np.float32(0)).compile()
+  except jax.errors.JaxRuntimeError:  # an older or newer jaxlib: "No such compile option"
+    return {}
+  return dict(NO_YNN_FUSIONS)
+
+
+def physics_jit(fn: Callable, **jit_kwargs) -> Callable:
+  """`jax.jit(fn, **jit_kwargs)` with `physics_compiler_options()` (module doc): for
+  jitted functions whose work is MJX physics, batched or not."""
+  return jax.jit(fn, compiler_options=physics_compiler_options() or None, **jit_kwargs)
 
 
 @full_precision
