@@ -138,6 +138,7 @@ def run(train_argv: list[str], threshold: float, run_dir: str, baseline: bool = 
       action_repeat=cfg.action_repeat, wall_s=summary["wall_s"], process_s=process_s,
       transitions_per_s=summary["steps"] / summary["wall_s"] if summary["wall_s"] else None,
       renderer=cfg.renderer, physics=cfg.physics_device() or jax.default_backend(),
+      physics_workers=cfg.physics_pool_workers(),
       steady_transitions_per_s=steady,
       total_transitions_per_s=steady * agents if steady else None,
       learner_updates_per_s=updates_alone,
@@ -178,6 +179,7 @@ def markdown(rows: list[dict]) -> str:
   return R.table(rows, [
       ("device", "device"), ("task", "task"), ("renderer", lambda r: r.get("renderer", "pool")),
       ("physics", lambda r: r.get("physics", "–")),
+      ("physics workers", lambda r: r.get("physics_workers", "–")),
       ("agents × envs (groups)",
        lambda r: f"{r['agents']} × {r['num_envs']} ({r.get('env_groups', 1)})"),
       ("devices", lambda r: r.get("devices", "–")), ("steps", lambda r: f"{r['steps']:,}"),

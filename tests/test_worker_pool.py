@@ -152,3 +152,17 @@ def test_worker_env_is_set_before_the_worker_imports_anything():
     assert (pool.run(2) == 1).all()
   finally:
     pool.close()
+
+
+def test_submit_returns_before_wait_and_wait_completes_the_call(tmp_path):
+  with make_pool(tmp_path, workers=2)[0] as pool:
+    n = 7
+    fill(pool, n)
+    with pytest.raises(RuntimeError, match="without a submitted call"):
+      pool.wait()
+    pool.submit(n)
+    with pytest.raises(RuntimeError, match="submit\\(\\) called twice"):
+      pool.submit(n)
+    np.testing.assert_array_equal(pool.wait(), expected(n))
+    fill(pool, n)
+    np.testing.assert_array_equal(pool.run(n), expected(n))  # the pool is usable again

@@ -111,6 +111,10 @@ def build_parser() -> argparse.ArgumentParser:
                  help="host driver: step each agent's envs in this many groups, one "
                       "group per training step, so one group's physics and pixels are "
                       "computed while the accelerator updates (must divide --num-envs)")
+  p.add_argument("--physics-workers", type=int, default=d.physics_workers,
+                 help="with the physics on the host CPU (--physics auto on an "
+                      "accelerator, or cpu): processes that step it, each a slice of the "
+                      "envs (0: in the training process)")
   p.add_argument("--chunk-steps", type=int, default=d.chunk_steps,
                  help="--renderer jax with the physics on the device: vector steps per "
                       "device call")
@@ -149,7 +153,7 @@ FLAG_FIELDS = {
     "buffer_capacity": lambda c: c.buffer_capacity, "batch_size": lambda c: c.sac.batch_size,
     "image_size": lambda c: c.image_size, "renderer": lambda c: c.renderer,
     "chunk_steps": lambda c: c.chunk_steps, "physics": lambda c: c.physics,
-    "env_groups": lambda c: c.env_groups,
+    "env_groups": lambda c: c.env_groups, "physics_workers": lambda c: c.physics_workers,
     "quality": lambda c: c.quality,
     "workers": lambda c: c.workers, "dtype": lambda c: c.sac.compute_dtype,
     "agent_loop": lambda c: c.agent_loop, "checkpoint_every": lambda c: c.checkpoint_every,
@@ -186,7 +190,7 @@ def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
                       quality=a.quality, workers=a.workers, log_every=a.log_every,
                       checkpoint_every=a.checkpoint_every, agent_loop=a.agent_loop,
                       renderer=a.renderer, chunk_steps=a.chunk_steps, physics=a.physics,
-                      env_groups=a.env_groups,
+                      env_groups=a.env_groups, physics_workers=a.physics_workers,
                       out_dir=a.out or default_out(a.task, sac_cfg),
                       sac=sac_cfg)
     if a.resume:

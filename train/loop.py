@@ -14,7 +14,10 @@ Physics device (`TrainConfig.physics`): "auto" steps the physics of small
 batches (K·N ≤ `CPU_PHYSICS_MAX_ENVS`) on the host CPU when the learner runs on
 an accelerator: a few dozen envs step there faster than an accelerator's launch
 latency allows, and off the accelerator's queue, so the updates and the physics
-run at the same time; larger batches step on the accelerator.
+run at the same time; larger batches step on the accelerator. On the host CPU the
+physics may step in `TrainConfig.physics_workers` processes (`dmcr_jax.physics_pool`),
+each a slice of the envs, so that a many-core host steps the batch in parallel
+(default 0: in the training process).
 
 Env groups (`TrainConfig.env_groups` = G, host driver): each agent's N envs are
 G envs of N/G (G `dmcr_jax.make` envs, each with its own render workers), stepped
@@ -98,7 +101,7 @@ PHYSICS = ("auto", "cpu", "device")
 learner's device."""
 CPU_PHYSICS_MAX_ENVS = 64
 """The largest K·N whose physics "auto" steps on the host CPU."""
-RESUMABLE = ("steps", "checkpoint_every", "log_every", "workers")
+RESUMABLE = ("steps", "checkpoint_every", "log_every", "workers", "physics_workers")
 """`TrainConfig` fields a resumed run may change (a larger `steps` extends it; the
 others change neither the agents nor the data); `out_dir` may name the folder
 differently. Every other field must equal the run's config.json."""
@@ -141,6 +144,8 @@ class TrainConfig:
     physics: where the physics steps: "auto", "cpu" or "device" (module doc).
     env_groups: G, the groups each agent's N envs step in with the host driver
       (module doc); G divides N; 1 with the device driver.
+    physics_workers: with the physics on the host CPU, processes that step it
+      (`dmcr_jax.physics_pool`; 0: in the training process).
     out_dir: where the CSV, the PNG and the checkpoints go.
     sac: the learner's hyperparameters.
   """
@@ -166,6 +171,7 @@ class TrainConfig:
   chunk_steps: int = 50
   physics: str = "auto"
   env_groups: int = 1
+  physics_workers: int = 0
   sac: sac.SACConfig = sac.SACConfig()
 
   def __post_init__(self):
@@ -180,6 +186,11 @@ class TrainConfig:
         and len(self.agents()) * self.num_envs <= CPU_PHYSICS_MAX_ENVS):
       return "cpu"
     return None
+
+  def physics_pool_workers(self) -> int:
+    """`dmcr_jax.make`'s `physics_workers` for each env group of this run (0 unless
+    the physics steps on the host CPU)."""
+    return self.physics_workers if self.physics_device() == "cpu" else 0
 
   def device_driver(self) -> bool:
     """Whether `train` runs this config with the device driver
@@ -299,6 +310,10 @@ def check_config(cfg: TrainConfig) -> None:
     raise ValueError(f"seeds must be distinct ints in [0, 2**31), got {cfg.seeds!r}")
   if cfg.workers is not None:
     positive_int("workers", cfg.workers)
+  if (isinstance(cfg.physics_workers, bool) or not isinstance(cfg.physics_workers, int)
+      or cfg.physics_workers < 0):
+    raise ValueError(f"physics_workers must be 0 (the physics in the training process) or "
+                     f"a positive int, got {cfg.physics_workers!r}")
   if cfg.warmup_steps < 0 or cfg.checkpoint_every < 0:
     raise ValueError("warmup_steps and checkpoint_every must be >= 0")
   if not cfg.utd > 0:
@@ -850,7 +865,8 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
   k, n = len(cfg.agents()), cfg.num_envs // groups
   extra = dict(obs_on_device=True) if cfg.renderer == "jax" else {}
   with contextlib.ExitStack() as stack:
-    envs = [stack.enter_context(make_env(cfg, n, physics_device=physics_device, **extra))
+    envs = [stack.enter_context(make_env(cfg, n, physics_device=physics_device,
+                                         physics_workers=cfg.physics_pool_workers(), **extra))
             for _ in range(groups)]
     obs_shape = envs[0].single_observation_space.shape
     mesh = agent_mesh(k, devices)

@@ -1,6 +1,7 @@
-"""A fault-tolerant pool of worker processes that render batches into shared memory.
+"""A fault-tolerant pool of worker processes that compute batches in shared memory.
 
-`WorkerPool` is the process machinery under `RenderPool`: W worker processes, each
+`WorkerPool` is the process machinery under `RenderPool` (frames) and
+`dmcr_jax.physics_pool.PhysicsPool` (physics): W worker processes, each
 owning a fixed contiguous slice of the batch, read their inputs from shared-memory
 arrays and write their outputs into a shared-memory array (no pickling of pixels).
 Each worker builds its renderer once, from a picklable factory, in its own process
@@ -21,7 +22,11 @@ output is double-buffered: calls alternate between two output arrays and the
 renderer is called as `renderer(inputs, out, prev)`, where `prev` holds the
 previous call's output of the same rows. A renderer that reads only `prev` and
 `inputs` stays idempotent, so a re-rendered slice (after a fault) gives the
-same result — this is how frame stacks are built in the workers.
+same result — this is how frame stacks are built in the workers, and how the
+physics workers keep their envs' state (each call steps `prev`'s state into `out`).
+
+A call is `run(batch)`, or `submit(batch)` (returns at once) and later `wait()`,
+so that the caller can work while the workers do.
 """
 
 from __future__ import annotations
@@ -41,7 +46,8 @@ import numpy as np
 
 
 class WorkerError(RuntimeError):
-  """An exception raised inside a render worker (its traceback is in the message)."""
+  """An exception raised inside a worker (its traceback is in the message), or a
+  worker that failed too often."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -169,13 +175,16 @@ class WorkerPool:
     max_retries: restarts per slice within one call before the call fails.
     env: environment variables set in each worker before the factory runs.
     buffers: 1, or 2 for double-buffered outputs (see the module docstring).
+    kind: what the workers do, for process names and error messages ("render",
+      "physics").
   """
 
   def __init__(self, factory: Callable[..., Any], factory_args: Sequence[Any],
                inputs: Mapping[str, ArraySpec], output: ArraySpec, max_batch: int,
                workers: int, timeout: float = 120.0, start_timeout: float = 600.0,
                max_retries: int = 3,
-               env: Mapping[str, str] | None = None, buffers: int = 1):
+               env: Mapping[str, str] | None = None, buffers: int = 1,
+               kind: str = "render"):
     if int(workers) < 1:
       raise ValueError(f"workers must be >= 1, got {workers}")
     if int(max_batch) < 1:
@@ -196,6 +205,8 @@ class WorkerPool:
     self._procs: list[Any] = [None] * self.num_workers
     self._conns: list[Any] = [None] * self.num_workers
     self._call_id = 0
+    self._pending = None
+    self.kind = kind
     self.restarts = 0
     self._closed = False
     try:
@@ -222,7 +233,7 @@ class WorkerPool:
   def _start(self, w: int) -> None:
     parent, child = self._ctx.Pipe()
     proc = self._ctx.Process(
-        target=_worker_main, daemon=True, name=f"dmcr-render-{w}",
+        target=_worker_main, daemon=True, name=f"dmcr-{self.kind}-{w}",
         args=(child, self._factory, self._factory_args, self._in_names, self._in_specs,
               self._out_names, self._out_spec, self.max_batch, self._env))
     with _main_module_hidden(), _environ(self._env):
@@ -240,10 +251,10 @@ class WorkerPool:
         msg = ("error", f"worker {w} exited during start-up (code {proc.exitcode})")
       if msg[0] == "ready":
         return
-      raise WorkerError(f"render worker {w} failed to start:\n{msg[1]}")
+      raise WorkerError(f"{self.kind} worker {w} failed to start:\n{msg[1]}")
     if not ready:
-      raise WorkerError(f"render worker {w} did not start within {self.start_timeout} s")
-    raise WorkerError(f"render worker {w} exited during start-up (code {proc.exitcode})")
+      raise WorkerError(f"{self.kind} worker {w} did not start within {self.start_timeout} s")
+    raise WorkerError(f"{self.kind} worker {w} exited during start-up (code {proc.exitcode})")
 
   def _kill(self, w: int) -> None:
     proc, conn = self._procs[w], self._conns[w]
@@ -316,24 +327,44 @@ class WorkerPool:
     return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
 
   def run(self, batch: int) -> np.ndarray:
-    """Renders envs [0, batch) from `self.inputs` into `self.output[:batch]`.
+    """Renders envs [0, batch) from `self.inputs` into `self.output[:batch]`
+    (`submit`, then `wait`).
 
     Returns:
       A view of the output rows (valid until the next call; with two buffers,
       until the call after next, whose `prev` it is).
     """
+    self.submit(batch)
+    return self.wait()
+
+  def submit(self, batch: int) -> None:
+    """Sends every worker its slice of envs [0, batch) and returns at once; `wait`
+    completes the call. `self.inputs` must not change in between."""
     if self._closed:
       raise RuntimeError("the pool is closed")
+    if self._pending is not None:
+      raise RuntimeError("submit() called twice: call wait() first")
     if not 1 <= batch <= self.max_batch:
       raise ValueError(f"batch must be in [1, {self.max_batch}], got {batch}")
     self._call_id += 1
     self._cur = (self._call_id - 1) % len(self._outputs)
     pending = {w: s for w, s in enumerate(self.slices(batch)) if s[1] > s[0]}
-    tries = {w: 0 for w in pending}
-    deadline = {}
     for w, (a, b) in pending.items():
       self._send(w, a, b)
-      deadline[w] = time.monotonic() + self.timeout
+    self._pending = (batch, pending)
+
+  def wait(self) -> np.ndarray:
+    """Waits for the call `submit` began (replacing dead or hung workers and
+    resending their slices); returns `run`'s view of the output rows.
+
+    Raises:
+      WorkerError: a worker raised, or failed more than `max_retries` times.
+    """
+    if self._pending is None:
+      raise RuntimeError("wait() without a submitted call")
+    (batch, pending), self._pending = self._pending, None
+    tries = {w: 0 for w in pending}
+    deadline = {w: time.monotonic() + self.timeout for w in pending}
     while pending:
       waitables = {self._conns[w]: w for w in pending}
       waitables.update({self._procs[w].sentinel: w for w in pending})
@@ -367,7 +398,7 @@ class WorkerPool:
           for v in pending:  # let the others finish so the pool stays consistent
             if v != w:
               self._drain(v)
-          raise WorkerError(f"render worker {w} raised:\n{msg[1]}")
+          raise WorkerError(f"{self.kind} worker {w} raised:\n{msg[1]}")
     return self.output[:batch]
 
   def _send(self, w: int, a: int, b: int) -> None:
@@ -379,7 +410,7 @@ class WorkerPool:
   def _retry(self, w: int, pending: dict, tries: dict, why: str) -> None:
     tries[w] += 1
     if tries[w] > self.max_retries:
-      raise WorkerError(f"render worker {w} {why} {tries[w]} times in one call")
+      raise WorkerError(f"{self.kind} worker {w} {why} {tries[w]} times in one call")
     self._replace(w)
     self._send(w, *pending[w])
 
@@ -394,3 +425,30 @@ class WorkerPool:
       except (EOFError, OSError):
         pass
     self._replace(w)
+
+
+class OwnsWorkerPool:
+  """What a class built on a `WorkerPool` (kept as `self._pool`) exposes of it:
+  `restarts`, `pids`, `close()` and the `with` block."""
+
+  _pool: WorkerPool
+
+  @property
+  def restarts(self) -> int:
+    """Workers replaced so far (killed or hung)."""
+    return self._pool.restarts
+
+  @property
+  def pids(self) -> list[int]:
+    """Process ids of the current workers."""
+    return self._pool.pids
+
+  def close(self) -> None:
+    """Stops the workers and frees shared memory (idempotent)."""
+    self._pool.close()
+
+  def __enter__(self):
+    return self
+
+  def __exit__(self, *exc):
+    self.close()

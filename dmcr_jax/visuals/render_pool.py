@@ -41,7 +41,7 @@ from dmcr_jax.checks import positive_int
 from dmcr_jax.models.names import FIELD_OBJECTS, find_id
 from dmcr_jax.visuals import render_model as rmod
 from dmcr_jax.visuals.params import VisualParams
-from dmcr_jax.visuals.pool import ArraySpec, WorkerPool
+from dmcr_jax.visuals.pool import ArraySpec, OwnsWorkerPool, WorkerPool
 from dmcr_jax.visuals.tiled import TiledRenderer, check_quality, prepare_kinematics
 
 GL_BACKENDS = ("egl", "osmesa")
@@ -153,7 +153,7 @@ class _WorkerRenderer:
       out[restart] = np.concatenate([frames[restart]] * self.frame_stack, axis=-1)
 
 
-class RenderPool:
+class RenderPool(OwnsWorkerPool):
   """Renders batches of DMCR frames in W worker processes.
 
   Args:
@@ -213,15 +213,6 @@ class RenderPool:
     self.max_batch = self._pool.max_batch
     self.num_workers = self._pool.num_workers
 
-  @property
-  def restarts(self) -> int:
-    """Workers replaced so far (killed or hung)."""
-    return self._pool.restarts
-
-  @property
-  def pids(self) -> list[int]:
-    return self._pool.pids
-
   def render(self, qpos, looks: VisualParams | rmod.Looks,
              model_variables: Mapping[str, Any] | None = None, *,
              restart=None, copy_out: bool = True) -> np.ndarray:
@@ -271,12 +262,3 @@ class RenderPool:
     out = self._pool.run(n)
     return out.copy() if copy_out else out
 
-  def close(self) -> None:
-    """Stops the workers and frees shared memory."""
-    self._pool.close()
-
-  def __enter__(self):
-    return self
-
-  def __exit__(self, *exc):
-    self.close()

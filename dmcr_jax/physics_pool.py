@@ -1,0 +1,213 @@
+"""`PhysicsPool`: the physics of N envs stepped by W worker processes on the host CPU.
+
+MJX on XLA:CPU runs a small batch one operation after another, latency-bound, so
+one process uses little of a many-core host. Here each of W worker processes
+(a `visuals.pool.WorkerPool`, `JAX_PLATFORMS=cpu`) owns a fixed contiguous slice
+of the envs and runs `physics_env.init` and `physics_env.step` on it with its
+own XLA:CPU; the slices step at the same time (measurements:
+`benchmarks/results/physics_processes_h200host.md`).
+
+State lives in shared memory, one record per env (every leaf of the env's
+`physics_env.EnvState`, its key as key data, the step's reward and truncation),
+double-buffered: a call reads each env's previous record and writes the new one,
+so a worker that dies or hangs is replaced and its slice stepped again from the
+same records (`WorkerPool`'s fault handling), with nothing lost.
+
+Results are those of the in-process `physics_env` functions up to float32
+rounding: every env's key comes from the same split (`physics_env.init` with N
+keys) and each worker steps its envs with their own keys, seeds and ranges, but
+XLA compiles a slice's smaller batch differently, so the last bits of a state
+can differ and, in chaotic stretches of an episode, grow
+(`tests/test_physics_pool.py` compares both across episode ends).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dmcr_jax import physics_env
+from dmcr_jax.checks import positive_int
+from dmcr_jax.visuals.levels import EnvRanges, SeedRange
+from dmcr_jax.visuals.pool import ArraySpec, OwnsWorkerPool, WorkerPool
+
+
+def _is_key(leaf) -> bool:
+  return jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.prng_key)
+
+
+def _layout(task, frame_skip: int):
+  """(treedef, record dtype, index of the key leaf) of one env's EnvState."""
+  es = jax.eval_shape(lambda k: physics_env.init(task, jnp.zeros((1,), jnp.int32), k, 1),
+                      jax.random.key(0))
+  leaves, treedef = jax.tree.flatten(es)
+  fields, key_leaf = [], None
+  for i, leaf in enumerate(leaves):
+    if _is_key(leaf):
+      key_leaf = i
+      data = jax.eval_shape(jax.random.key_data, leaf)
+      fields.append((f"l{i}", data.dtype, data.shape[1:]))
+    else:
+      fields.append((f"l{i}", leaf.dtype, leaf.shape[1:]))
+  fields += [("reward", np.float32, ()), ("truncated", np.bool_, ())]
+  return treedef, np.dtype(fields, align=True), key_leaf
+
+
+def _unpack(records: np.ndarray, treedef, key_leaf: int, copy: bool):
+  """The EnvState stored in `records` (leaves: NumPy arrays, copies or views; the
+  key a `jax.Array` of keys on the CPU)."""
+  leaves = []
+  for i in range(treedef.num_leaves):
+    x = records[f"l{i}"]
+    if i == key_leaf:
+      x = jax.random.wrap_key_data(jax.device_put(np.ascontiguousarray(x), jax.devices("cpu")[0]))
+    elif copy:
+      x = np.ascontiguousarray(x)
+    leaves.append(x)
+  return jax.tree.unflatten(treedef, leaves)
+
+
+def _pack(es, records: np.ndarray, key_leaf: int) -> None:
+  """Writes an EnvState's leaves into `records` (one record per env)."""
+  for i, x in enumerate(jax.tree.leaves(es)):
+    records[f"l{i}"] = np.asarray(jax.random.key_data(x) if i == key_leaf else x)
+
+
+class _Stepper:
+  """A physics worker's callable (`WorkerPool` protocol): `init` or one `step`
+  of its slice of envs, from `prev`'s records into `out`'s."""
+
+  def __init__(self, task_name: str, solver_iterations, ls_iterations, frame_skip: int,
+               seed_range: SeedRange | EnvRanges | None):
+    from dmcr_jax import models
+    from dmcr_jax.models.base import physics_jit
+    self.task = models.load(task_name, solver_iterations, ls_iterations)
+    self.frame_skip, self.seed_range = frame_skip, seed_range
+    self.treedef, _, self.key_leaf = _layout(self.task, frame_skip)
+    self._jit = physics_jit
+    self._fns = {}
+
+  def _seeds(self, inputs) -> tuple[Any, Any]:
+    """(static seed source or None, traced seed argument) of this slice."""
+    if self.seed_range is None:
+      return None, np.ascontiguousarray(inputs["seed"])
+    if isinstance(self.seed_range, EnvRanges):
+      first, n = int(inputs["index"][0]), len(inputs["index"])
+      return EnvRanges(self.seed_range.ranges[first:first + n]), None
+    return self.seed_range, None
+
+  def _functions(self, static):
+    if static not in self._fns:
+      pick = (lambda arg: arg) if static is None else (lambda arg: static)
+      task, skip = self.task, self.frame_skip
+      init = self._jit(lambda keys, arg: physics_env.init(task, pick(arg), keys, keys.shape[0]))
+      step = self._jit(lambda es, a, arg: physics_env.step(task, pick(arg), skip, es, a))
+      self._fns[static] = (init, step)
+    return self._fns[static]
+
+  def __call__(self, inputs, out, prev) -> None:
+    static, arg = self._seeds(inputs)
+    init, step = self._functions(static)
+    if inputs["init"][0]:
+      keys = jax.random.wrap_key_data(np.ascontiguousarray(inputs["key"]))
+      es = init(keys, arg)
+      out["reward"], out["truncated"] = 0.0, False
+    else:
+      es = _unpack(prev, self.treedef, self.key_leaf, copy=True)
+      es, reward, truncated = step(es, np.ascontiguousarray(inputs["action"]), arg)
+      out["reward"], out["truncated"] = np.asarray(reward), np.asarray(truncated)
+    _pack(es, out, self.key_leaf)
+
+
+class PhysicsPool(OwnsWorkerPool):
+  """`physics_env.init` and `physics_env.step` of N envs in W worker processes.
+
+  Args:
+    task: the `Task` (`models.load`; its name and solver budget are rebuilt in
+      the workers).
+    num_envs: N.
+    frame_skip: control steps per agent step.
+    seed_range: the static seed source (a `SeedRange` or `EnvRanges`), or None
+      for fixed seeds (passed to each call).
+    workers: W ≥ 1 (at most N are used).
+    timeout: seconds a worker may take for one call before it is replaced.
+
+  `init(key, seeds)` and `step(es, actions, seeds)` take and return what the
+  jitted `physics_env` functions do, with NumPy leaves (the key on the CPU);
+  `step` returns at once, with a `PendingStep` whose `result()` waits. The
+  workers keep stepping the state the pool returned last; `step` of any other
+  state (e.g. one changed by the caller) loads it into their records first.
+  Use as a context manager or call `close()`.
+  """
+
+  def __init__(self, task, num_envs: int, frame_skip: int,
+               seed_range: SeedRange | EnvRanges | None, workers: int,
+               timeout: float = 120.0):
+    n = positive_int("num_envs", num_envs)
+    workers = min(positive_int("physics workers", workers), n)
+    self.num_envs, self.seed_range = n, seed_range
+    self.treedef, record, self.key_leaf = _layout(task, frame_skip)
+    key_shape = record[f"l{self.key_leaf}"].shape
+    inputs = {"action": ArraySpec((task.action_size,), "float32"),
+              "key": ArraySpec(key_shape, "uint32"),
+              "seed": ArraySpec((), "int32"), "index": ArraySpec((), "int32"),
+              "init": ArraySpec((), "bool")}
+    self._pool = WorkerPool(
+        _Stepper, (task.name, task.solver_iterations, task.ls_iterations, frame_skip,
+                   seed_range),
+        inputs, ArraySpec((), record), max_batch=n, workers=workers, timeout=timeout,
+        buffers=2, kind="physics",
+        env={"JAX_PLATFORMS": "cpu", "XLA_PYTHON_CLIENT_PREALLOCATE": "false"})
+    self._pool.inputs["index"][:] = np.arange(n)
+    self.num_workers = self._pool.num_workers
+    self._current = None
+
+  def _seeds_in(self, seeds) -> None:
+    if self.seed_range is None:
+      self._pool.inputs["seed"][:] = np.asarray(seeds, np.int32)
+
+  def _result(self, records: np.ndarray):
+    """The EnvState of a call's records, in the caller's own memory (one copy of
+    the records: views of shared memory would outlive `close`); (es, records)."""
+    records = records.copy()
+    es = _unpack(records, self.treedef, self.key_leaf, copy=False)
+    self._current = es
+    return es, records
+
+  def init(self, key: jax.Array, seeds=None):
+    """`physics_env.init` of the N envs (waits); `key`: one key or N keys."""
+    keys = key if key.shape == (self.num_envs,) else jax.random.split(key, self.num_envs)
+    self._pool.inputs["key"][:] = np.asarray(jax.random.key_data(keys))
+    self._pool.inputs["init"][:] = True
+    self._seeds_in(seeds)
+    return self._result(self._pool.run(self.num_envs))[0]
+
+  def step(self, es, actions, seeds=None) -> "PendingStep":
+    """Starts `physics_env.step(es, actions)` of the N envs; returns at once."""
+    if es is not self._current:
+      _pack(es, self._pool.output, self.key_leaf)  # read as `prev` by this call
+    self._pool.inputs["action"][:] = np.asarray(actions, np.float32)
+    self._pool.inputs["init"][:] = False
+    self._seeds_in(seeds)
+    self._pool.submit(self.num_envs)
+    return PendingStep(self)
+
+  def close(self) -> None:
+    """Stops the workers and frees shared memory (idempotent)."""
+    super().close()
+    self._current = None
+
+
+class PendingStep:
+  """A `PhysicsPool.step` in flight; `result()` waits and returns
+  (EnvState, reward float32 (N,), truncated bool (N,))."""
+
+  def __init__(self, pool: PhysicsPool):
+    self._pool = pool
+
+  def result(self):
+    es, records = self._pool._result(self._pool._pool.wait())
+    return es, records["reward"], records["truncated"]

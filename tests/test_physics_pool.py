@@ -1,0 +1,146 @@
+"""PhysicsPool: the workers' physics equals the in-process physics_env step, across
+episode ends, seed kinds, slices, a killed worker and an external state."""
+
+import os
+import signal
+
+import jax
+import numpy as np
+import pytest
+
+import dmcr_jax
+from dmcr_jax import env as env_mod
+from dmcr_jax import models
+from dmcr_jax.physics_pool import PhysicsPool
+from dmcr_jax.visuals.levels import EnvRanges, SeedRange
+
+# test_env's task and sizes (pendulum-swingup, frame skip 100: 10 agent steps per
+# episode; 3 envs), in its xdist group: the in-process physics compiles once.
+TASK, N, SKIP, EPISODE = "pendulum-swingup", 3, 100, 10
+pytestmark = pytest.mark.xdist_group("env")
+
+
+def in_process(seed_range):
+  """The env's own jitted (init, step) for N envs on the CPU."""
+  return env_mod._physics_fns(models.load(TASK), N, SKIP, seed_range, False)
+
+
+def plain(tree):
+  """Leaves as NumPy (keys as key data), for comparison."""
+  return [np.asarray(jax.random.key_data(x) if jax.dtypes.issubdtype(
+      x.dtype, jax.dtypes.prng_key) else x) for x in jax.tree.leaves(tree)]
+
+
+def assert_close(a, b):
+  for x, y in zip(plain(a), plain(b), strict=True):
+    if x.dtype.kind in "biu":
+      np.testing.assert_array_equal(x, y)
+    else:
+      np.testing.assert_allclose(x, y, rtol=1e-4, atol=1e-5)
+
+
+def run_both(pool, seed_arg, steps, es_ref, es, seed=0):
+  """Steps the pool and the in-process physics alike; returns both states."""
+  _, step = in_process(pool.seed_range)
+  rng = np.random.default_rng(seed)
+  cpu = jax.devices("cpu")[0]
+  for _ in range(steps):
+    a = rng.uniform(-1, 1, (N, models.load(TASK).action_size)).astype(np.float32)
+    es_ref, r_ref, t_ref = step(es_ref, jax.device_put(a, cpu),
+                                None if seed_arg is None else jax.device_put(seed_arg, cpu))
+    es, r, t = pool.step(es, a, seed_arg).result()
+    np.testing.assert_allclose(r, r_ref, rtol=1e-4, atol=1e-5)
+    np.testing.assert_array_equal(t, t_ref)
+  return es_ref, es
+
+
+def init_both(pool, seeds, key_seed: int):
+  """Both physics started with fixed `seeds` from one key; (in-process, pool) states."""
+  init, _ = in_process(None)
+  key = jax.random.key(key_seed)
+  es_ref = init(key, jax.device_put(seeds, jax.devices("cpu")[0]))
+  es = pool.init(key, seeds)
+  assert_close(es, es_ref)
+  return es_ref, es
+
+
+@pytest.fixture(scope="module")
+def fixed_pool():
+  with PhysicsPool(models.load(TASK), N, SKIP, None, workers=2) as pool:
+    yield pool
+
+
+@pytest.mark.slow
+def test_fixed_seeds_match_in_process_across_an_episode_end(fixed_pool):
+  seeds = np.array([3, 7, 9], np.int32)
+  es_ref, es = init_both(fixed_pool, seeds, 5)
+  es_ref, es = run_both(fixed_pool, seeds, EPISODE + 2, es_ref, es)
+  assert_close(es, es_ref)
+  np.testing.assert_array_equal(es.episode, [1] * N)
+  np.testing.assert_array_equal(es.visual_seed, seeds)
+
+
+@pytest.mark.slow
+def test_a_changed_state_is_loaded_into_the_workers(fixed_pool):
+  seeds = np.zeros(N, np.int32)
+  es_ref, es = init_both(fixed_pool, seeds, 6)
+  moved = lambda e: e.replace(task=e.task.replace(
+      data=e.task.data.replace(qvel=np.asarray(e.task.data.qvel) + 1.0)))
+  es_ref, es = run_both(fixed_pool, seeds, 2, moved(es_ref), moved(es))
+  assert_close(es, es_ref)
+
+
+@pytest.mark.slow
+def test_killed_worker_loses_no_state(fixed_pool):
+  seeds = np.zeros(N, np.int32)
+  es_ref, es = init_both(fixed_pool, seeds, 9)
+  es_ref, es = run_both(fixed_pool, seeds, 2, es_ref, es)
+  restarts = fixed_pool.restarts
+  os.kill(fixed_pool.pids[1], signal.SIGKILL)
+  es_ref, es = run_both(fixed_pool, seeds, 3, es_ref, es, seed=2)
+  assert fixed_pool.restarts == restarts + 1
+  assert_close(es, es_ref)
+
+
+@pytest.mark.slow
+def test_per_env_ranges_draw_as_in_process_in_every_slice():
+  ranges = EnvRanges((SeedRange(0, 10), SeedRange(20, 30), SeedRange(40, 50)))
+  init, _ = in_process(ranges)
+  key = jax.random.key(2)
+  with PhysicsPool(models.load(TASK), N, SKIP, ranges, workers=2) as pool:
+    assert [b - a for a, b in pool._pool.slices(N)] == [2, 1]  # offsets matter
+    es_ref, es = init(key, None), pool.init(key)
+    assert_close(es, es_ref)
+    es_ref, es = run_both(pool, None, EPISODE + 1, es_ref, es)
+  assert_close(es, es_ref)
+  assert ranges.contains_all(es.visual_seed)
+  np.testing.assert_array_equal(es.episode, [1] * N)
+
+
+@pytest.mark.slow
+def test_env_with_physics_workers_matches_in_process_env():
+  kw = dict(visual_seeds=[0, 1, 2], frame_skip=SKIP, image_size=32, workers=1,
+            physics_device="cpu")
+  runs = []
+  for physics_workers in (0, 2):
+    with dmcr_jax.make(TASK, N, physics_workers=physics_workers, **kw) as env:
+      obs, _ = env.reset(seed=4)
+      rng = np.random.default_rng(0)
+      steps = [(obs, None)]
+      for _ in range(5):
+        obs, reward, _, truncated, info = env.step(rng.uniform(-1, 1, (N, 1)))
+        steps.append((obs, reward))
+      runs.append((steps, env.state))
+  for (obs_a, r_a), (obs_b, r_b) in zip(*(r[0] for r in runs)):
+    np.testing.assert_array_equal(obs_a, obs_b)
+    if r_a is not None:
+      np.testing.assert_allclose(r_a, r_b, rtol=1e-4, atol=1e-5)
+  assert_close(runs[0][1], runs[1][1])
+
+
+@pytest.mark.parametrize("workers,device,why", [
+    (2, None, "needs physics_device='cpu'"), (-1, "cpu", "positive int"),
+    (True, "cpu", "positive int")])
+def test_bad_physics_workers_are_refused_before_anything_starts(workers, device, why):
+  with pytest.raises(ValueError, match=why):
+    dmcr_jax.make(TASK, N, physics_device=device, physics_workers=workers, workers=1)
