@@ -39,7 +39,7 @@ def _is_key(leaf) -> bool:
   return jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.prng_key)
 
 
-def _layout(task, frame_skip: int):
+def _layout(task):
   """(treedef, record dtype, index of the key leaf) of one env's EnvState."""
   es = jax.eval_shape(lambda k: physics_env.init(task, jnp.zeros((1,), jnp.int32), k, 1),
                       jax.random.key(0))
@@ -86,7 +86,7 @@ class _Stepper:
     from dmcr_jax.models.base import physics_jit
     self.task = models.load(task_name, solver_iterations, ls_iterations)
     self.frame_skip, self.seed_range = frame_skip, seed_range
-    self.treedef, _, self.key_leaf = _layout(self.task, frame_skip)
+    self.treedef, _, self.key_leaf = _layout(self.task)
     self._jit = physics_jit
     self._fns = {}
 
@@ -149,7 +149,7 @@ class PhysicsPool(OwnsWorkerPool):
     n = positive_int("num_envs", num_envs)
     workers = min(positive_int("physics workers", workers), n)
     self.num_envs, self.seed_range = n, seed_range
-    self.treedef, record, self.key_leaf = _layout(task, frame_skip)
+    self.treedef, record, self.key_leaf = _layout(task)
     key_shape = record[f"l{self.key_leaf}"].shape
     inputs = {"action": ArraySpec((task.action_size,), "float32"),
               "key": ArraySpec(key_shape, "uint32"),
