@@ -124,16 +124,19 @@ def test_protocol_table_arithmetic_and_determinism(run_dir, tmp_path):
   assert table.count("| seed ") == 2 and "**mean**" in table
   assert os.path.getsize(tmp_path / "a" / "eval.png") > 0
 
-  # The same checkpoint and seeds give the same episodes, return for return.
+  # The same checkpoint and seeds give the same episodes, return for return, with
+  # the agents in another order (each agent's block moves to other envs). Two
+  # agents, as above: the same env and policy sizes, so nothing compiles again.
   some = ("all",)
   again = ev.evaluate(run_dir, ev.EvalConfig(**{**TINY.__dict__, "conditions": some}),
-                      out_dir=str(tmp_path / "b"), agents=[1], progress=False)
-  assert again["agents"][0]["train"]["episodes"] == first["agents"][1]["train"]["episodes"]
-  for c in some:
-    assert (again["agents"][0]["conditions"][c]["episodes"]
-            == first["agents"][1]["conditions"][c]["episodes"])
+                      out_dir=str(tmp_path / "b"), agents=[1, 0], progress=False)
+  for i, a in enumerate((1, 0)):
+    assert again["agents"][i]["train"]["episodes"] == first["agents"][a]["train"]["episodes"]
+    for c in some:
+      assert (again["agents"][i]["conditions"][c]["episodes"]
+              == first["agents"][a]["conditions"][c]["episodes"])
   with open(tmp_path / "b" / "eval.json") as f:
-    assert json.load(f)["agents"][0]["agent"] == 1
+    assert [r["agent"] for r in json.load(f)["agents"]] == [1, 0]
 
 
 @pytest.mark.slow
