@@ -174,14 +174,16 @@ def test_conv_activations_match_a_numpy_convolution():
 def test_episode_video_tiles_the_looks_frame_by_frame(run_dir, tmp_path):
   import imageio.v2 as imageio
   from dmcr_jax.train import analysis
-  path = analysis.episode_video(run_dir, str(tmp_path), looks=2, quality="fastest", workers=1,
+  # Four looks: 4 envs, as the invariance test's (3 looks + the training look), whose
+  # physics compilation this reuses.
+  path = analysis.episode_video(run_dir, str(tmp_path), looks=4, quality="fastest", workers=1,
                                 scale=2)
   assert os.path.basename(path) in ("episode.mp4", "episode.gif")
   frames = imageio.mimread(path) if path.endswith(".gif") else list(imageio.get_reader(path))
-  # One frame per agent step (10 per episode at action repeat 100); two 16 px looks
+  # One frame per agent step (10 per episode at action repeat 100); four 16 px looks
   # side by side, doubled.
   assert len(frames) == 10
-  assert np.asarray(frames[0]).shape[:2] == (32, 64)
+  assert np.asarray(frames[0]).shape[:2] == (32, 128)
 
 
 def test_eval_json_is_valid_json_when_e_g_is_undefined(run_dir, tmp_path, monkeypatch):
