@@ -203,7 +203,12 @@ def test_no_update_is_owed_until_the_buffers_refill(start):
 def test_host_and_device_drivers_train_identical_agents(tmp_path):
   # One training step, two drivers: fed the same frames (the ray caster's), the
   # host driver (jitted act/learn/store around the env) and the device driver
-  # (the same functions scanned) train bit-identical agents from one seed.
+  # (the same functions scanned) train the same agents from one seed: the same
+  # RNG stream, updates and data, so only float32 rounding may differ (XLA compiles
+  # the scan and the separate jits differently; on some CPUs bit for bit, on others
+  # in the last bits, which Adam's normalised steps carry into every parameter).
+  # Each leaf must agree within a thousandth of its largest entry; a different
+  # key, update count or transition moves leaves by their own size.
   agents = {}
   for physics in ("cpu", "device"):   # on a CPU: host driver, then device driver
     cfg = loop.TrainConfig(steps=24, num_envs=2, checkpoint_every=0, renderer="jax",
@@ -213,7 +218,11 @@ def test_host_and_device_drivers_train_identical_agents(tmp_path):
     _, agents[physics], step = loop.load_run(cfg.out_dir)
     assert step == 24 and int(agents[physics].step[0]) > 0  # updates ran
   for a, b in zip(jax.tree.leaves(agents["cpu"]), jax.tree.leaves(agents["device"])):
-    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    if np.asarray(a).dtype.kind in "biu":
+      np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    else:
+      scale = float(np.max(np.abs(np.asarray(b)), initial=0.0))
+      np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-3 * scale)
 
 
 @pytest.mark.slow

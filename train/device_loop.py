@@ -7,7 +7,8 @@ physics steps on the learner's device (`TrainConfig.physics_device`). The env is
 them on the device. A chunk of `TrainConfig.chunk_steps` vector steps of all K·N
 envs is one jitted `lax.scan` of `dmcr_jax.train.step`'s training step (act, learn, env
 step, store) — the functions the host driver (`dmcr_jax.train.loop`) calls, with the
-same RNG stream: given the same frames, both drivers train identical agents
+same RNG stream: given the same frames, both drivers train the same agents, up to
+float32 rounding
 (`tests/test_train.py`). The update count owed and whether the buffers can be
 sampled are kept in the scan's carry (`dmcr_jax.train.step.owed_updates`, `can_sample`);
 the number of update pairs of a step is dynamic (a loop of that many pairs).
