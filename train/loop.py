@@ -88,7 +88,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from dmcr_jax.checks import positive_int
-from dmcr_jax.env import RENDERERS, check_renderer_name  # noqa: F401 (RENDERERS: for the CLIs)
+from dmcr_jax.env import (RENDERERS, check_physics_workers,  # noqa: F401 (RENDERERS: CLIs)
+                          check_renderer_name)
 from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, SeedRange
 from dmcr_jax.train import replay, sac
 from dmcr_jax.train import step as train_step
@@ -310,10 +311,9 @@ def check_config(cfg: TrainConfig) -> None:
     raise ValueError(f"seeds must be distinct ints in [0, 2**31), got {cfg.seeds!r}")
   if cfg.workers is not None:
     positive_int("workers", cfg.workers)
-  if (isinstance(cfg.physics_workers, bool) or not isinstance(cfg.physics_workers, int)
-      or cfg.physics_workers < 0):
-    raise ValueError(f"physics_workers must be 0 (the physics in the training process) or "
-                     f"a positive int, got {cfg.physics_workers!r}")
+  # The env's own check; "cpu" because the workers only apply there
+  # (`physics_pool_workers`).
+  check_physics_workers(cfg.physics_workers, "cpu")
   if cfg.warmup_steps < 0 or cfg.checkpoint_every < 0:
     raise ValueError("warmup_steps and checkpoint_every must be >= 0")
   if not cfg.utd > 0:
