@@ -3,7 +3,8 @@
 The GPU machine returns at most a few files of 16 MiB, and a full checkpoint
 (optimizer states, critics, targets) is ~80 MB per agent. `export` writes one
 `<dest>/agent<i>.msgpack` per agent of a `train` run (flax serialization of
-``{"encoder": …, "actor": …}``, float32, ~12 MB) plus its config.json; `import`
+``{"encoder": …, "actor": …}``, float32, ~12 MB) plus its config.json and, for a
+run that ended, its summary.json (how it trained: `evaluate` records it); `import`
 rebuilds a run folder from them that `evaluate` and `dmcr_jax.train.analysis` accept. The
 imported agents' critics, targets and optimizer states are fresh, so such a run is
 for evaluation only, not for `--resume`.
@@ -27,10 +28,13 @@ from dmcr_jax.train import loop
 
 
 def export(run_dir: str, dest: str) -> int:
-  """Writes the run's config.json and agent<i>.msgpack files; returns the count."""
+  """Writes the run's config.json (and summary.json, if any) and agent<i>.msgpack
+  files; returns the count."""
   _, agents, step = loop.load_run(run_dir)
   os.makedirs(dest, exist_ok=True)
-  shutil.copy(os.path.join(run_dir, "config.json"), os.path.join(dest, "config.json"))
+  for name in ("config.json", "summary.json"):
+    if os.path.exists(os.path.join(run_dir, name)):
+      shutil.copy(os.path.join(run_dir, name), os.path.join(dest, name))
   k = agents.step.shape[0]
   for i in range(k):
     params = jax.tree.map(lambda x, i=i: x[i], agents.params)
@@ -41,7 +45,8 @@ def export(run_dir: str, dest: str) -> int:
 
 
 def import_run(src: str, run_dir: str) -> int:
-  """Builds `run_dir` (config.json + a checkpoint) from `export`'s files."""
+  """Builds `run_dir` (config.json, summary.json if exported, a checkpoint) from
+  `export`'s files."""
   import dmcr_jax
   cfg = loop.load_config(src)
   files = sorted(glob.glob(os.path.join(src, "agent*.msgpack")),
@@ -52,6 +57,8 @@ def import_run(src: str, run_dir: str) -> int:
   cfg = loop.TrainConfig(**{**cfg.__dict__, "out_dir": run_dir})
   os.makedirs(run_dir, exist_ok=True)
   loop.save_config(cfg, run_dir)
+  if os.path.exists(os.path.join(src, "summary.json")):
+    shutil.copy(os.path.join(src, "summary.json"), os.path.join(run_dir, "summary.json"))
   obs_shape = (cfg.image_size, cfg.image_size, 3 * cfg.frame_stack)
   agents = loop.init_agents(cfg, obs_shape, dmcr_jax.load(cfg.task).action_size)
   one = jax.tree.map(lambda x: x[0], agents.params)

@@ -103,6 +103,8 @@ def test_protocol_table_arithmetic_and_determinism(run_dir, tmp_path):
   first = ev.evaluate(run_dir, TINY, out_dir=str(tmp_path / "a"), progress=False)
   conditions = list(ev.conditions_for("cartpole-balance"))
   assert first["conditions"] == conditions and first["checkpoint_step"] == 3
+  assert first["action_repeat"] == 100 and first["device"] == jax.devices()[0].device_kind
+  assert first["training"] is None  # the fixture's run has no summary.json
   assert len(first["agents"]) == 2
   for row in first["agents"]:
     assert len(row["train"]["episodes"]) == TINY.train_episodes
@@ -274,3 +276,35 @@ def test_several_augmentations_are_compared_side_by_side_with_the_papers_rows(tm
   # One seed per augmentation: the agent rows are the means; no mean over augmentations.
   one_seed = ev.markdown(_summary(("drq", "cj+drq"), seeds=(0,)))
   assert "**" not in one_seed.split("Paper rows")[0]
+
+
+def test_exported_agents_carry_how_they_trained_to_the_evaluation(run_dir, tmp_path):
+  from dmcr_jax.benchmarks import export_params
+  with open(os.path.join(run_dir, "config.json")) as f:
+    config = f.read()
+  summary = dict(num_envs=2, wall_s=5.0, train_wall_s=12.0,
+                 segments=[dict(start=0, steps=2, wall_s=7.0, device="dev A"),
+                           dict(start=2, steps=3, wall_s=5.0, device="dev B")])
+  source = tmp_path / "source"
+  source.mkdir()
+  with open(source / "config.json", "w") as f:
+    f.write(config)
+  with open(source / "summary.json", "w") as f:
+    json.dump(summary, f)
+  ev_dir = str(tmp_path / "imported")
+  # The fixture's checkpoint, exported beside the summary, then imported elsewhere.
+  assert export_params.export(run_dir, str(tmp_path / "files")) == 2
+  assert not os.path.exists(tmp_path / "files" / "summary.json")  # the fixture has none
+  with open(tmp_path / "files" / "summary.json", "w") as f:
+    json.dump(summary, f)
+  assert export_params.import_run(str(tmp_path / "files"), ev_dir) == 2
+  assert ev.training_record(ev_dir) == dict(wall_s=12.0, devices=["dev A", "dev B"],
+                                            num_envs=2)
+  # The imported policies are the exported ones.
+  _, want, _ = loop.load_run(run_dir)
+  _, got, step = loop.load_run(ev_dir)
+  assert step == 3
+  for name in ("encoder", "actor"):
+    jax.tree.map(np.testing.assert_array_equal, got.params[name], want.params[name])
+  assert ev.training_record(str(source)) == ev.training_record(ev_dir)
+  assert ev.training_record(str(tmp_path)) is None

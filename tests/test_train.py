@@ -154,6 +154,11 @@ def test_interrupted_run_resumes_where_it_stopped(tmp_path):
   updates_at_stop = np.asarray(loop.load_run(out)[1].step)
   summary = loop.train(cfg, resume=True, progress=False)
   assert summary["steps"] == stopped + 15 and not summary["interrupted"]
+  # Both processes' pieces of the run, with the learner's device and loop times.
+  assert [(s["start"], s["steps"]) for s in summary["segments"]] == [(0, stopped),
+                                                                      (stopped, stopped + 15)]
+  assert all(s["device"] and s["wall_s"] > 0 for s in summary["segments"])
+  assert summary["train_wall_s"] == pytest.approx(sum(s["wall_s"] for s in summary["segments"]))
   assert max(int(d) for d in os.listdir(ckpt) if d.isdigit()) == stopped + 15
   with open(os.path.join(out, "log.csv")) as f:
     rows = list(csv.DictReader(f))

@@ -326,6 +326,8 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
   if bar is not None:
     bar.close()
   summary = dict(run_dir=run_dir, task=train_cfg.task, checkpoint_step=step,
+                 action_repeat=train_cfg.action_repeat,
+                 device=jax.devices()[0].device_kind, training=training_record(run_dir),
                  config=dataclasses.asdict(cfg), conditions=list(conditions),
                  test_visual_seeds=test_seeds.tolist(),
                  train_look=str(train_cfg.visual_seeds), agents=results,
@@ -340,6 +342,22 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
   if several:
     write_few_shot(summary, out_dir)
   return summary
+
+
+def training_record(run_dir: str) -> dict | None:
+  """How the run trained, from its summary.json: {"wall_s": the training loops' total
+  over every process of the run, "devices": the learner's device kinds, "num_envs"},
+  or None without a summary (e.g. agents imported by `export_params` from a run
+  exported without one)."""
+  path = os.path.join(run_dir, "summary.json")
+  if not os.path.exists(path):
+    return None
+  with open(path) as f:
+    summary = json.load(f)
+  segments = summary.get("segments", [])
+  return dict(wall_s=summary.get("train_wall_s", summary.get("wall_s")),
+              devices=sorted({s["device"] for s in segments if s.get("device")}),
+              num_envs=summary.get("num_envs"))
 
 
 def _mean_row(results: list[dict], conditions) -> dict:

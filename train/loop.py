@@ -727,12 +727,34 @@ def json_safe(tree):
   return tree
 
 
+def run_segments(out_dir: str, start: int, step: int, wall_s: float) -> list[dict]:
+  """The processes that trained a run, oldest first: those of an earlier
+  summary.json in `out_dir` that ended at or before `start` (a resumed run's),
+  then this one ({"start", "steps", "wall_s", "device"}: its first and last
+  training step, its loop's wall time, the learner's device kind)."""
+  earlier = []
+  path = os.path.join(out_dir, "summary.json")
+  if start > 0 and os.path.exists(path):
+    with open(path) as f:
+      old = json.load(f)
+    earlier = [s for s in old.get("segments", [dict(start=None, steps=old.get("steps"),
+                                                     wall_s=old.get("wall_s"), device=None)])
+               if s.get("steps") is not None and s["steps"] <= start]
+  return earlier + [dict(start=start, steps=step, wall_s=wall_s,
+                         device=jax.devices()[0].device_kind)]
+
+
 def finish(cfg: TrainConfig, step: int, log: RunLog) -> dict:
-  """The run's summary (also summary.json) and learning_curve.png."""
+  """The run's summary (also summary.json) and learning_curve.png.
+
+  summary.json's `wall_s` is this process's loop time; `segments` lists every
+  process of a resumed run (`run_segments`), `train_wall_s` their total."""
   specs = cfg.agents()
+  segments = run_segments(cfg.out_dir, log.start, step, log.wall())
   summary = dict(task=cfg.task, seeds=list(cfg.seeds), augs=list(cfg.sac.aug_names),
                  steps=step, num_envs=cfg.num_envs, interrupted=log.stopped,
-                 wall_s=log.wall(),
+                 wall_s=log.wall(), segments=segments,
+                 train_wall_s=sum(s["wall_s"] or 0.0 for s in segments),
                  **({"host_seconds": log.host_s, "env_seconds": log.env_s,
                      "steady": log.steady(step)} if log.host_s else {}),
                  final_return=plot_learning_curve(log.path, os.path.join(

@@ -1,0 +1,183 @@
+"""The paper's generalisation table with our rows beside its rows, from `evaluate` results.
+
+    python -m dmcr_jax.benchmarks.paper_table EVAL_JSON [EVAL_JSON ...] \\
+        --out benchmarks/results/paper_table_h200.md
+
+Each EVAL_JSON is an `evaluate` output (``eval.json``). Its agents are grouped by
+task, paper method (`paper_results.method_name`) and renderer; a group's row is the
+mean over its agents (seeds) of the train return, each condition of the paper's
+table and E_G of "all" (computed from those means, as the paper does). Writes
+``--out`` (Markdown) and the same rows as JSON beside it:
+
+- our row beside the paper's for every task and method (tasks in the order of the
+  paper's training-length table), with the difference of "all";
+- what each row ran: seeds, training steps and action repeat (against the
+  paper's), the protocol (held-out looks × initial states, train episodes,
+  render quality), training wall time and devices (from the run's summary.json,
+  when the agents came with it), evaluation wall time and device, and its file;
+- the ray caster against the pool, condition by condition, where a task and
+  method were evaluated with both;
+- which rows the paper-table issue asks for are still missing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+
+import numpy as np
+
+from dmcr_jax.train import paper_results
+
+TRAINING_LENGTH = {"walker-walk": (250_000, 2), "cheetah-run": (250_000, 4),
+                   "hopper-stand": (250_000, 4), "finger-spin": (100_000, 2),
+                   "ball_in_cup-catch": (75_000, 4), "cartpole-balance": (50_000, 8)}
+"""The paper's training steps (transitions) and action repeat per task (its
+appendix table of training lengths), in its order."""
+
+WANTED = tuple((task, "SAC+AUG") for task in TRAINING_LENGTH) + (
+    ("walker-walk", "SAC+CJ+AUG"), ("cheetah-run", "SAC+CJ+AUG"))
+"""The (task, method) rows the table is to hold, evaluated with the pool."""
+
+
+def rows_of(result: dict, source: str) -> list[dict]:
+  """One row per (method, renderer) group of an `evaluate` result's agents."""
+  groups: dict[str, list[dict]] = {}
+  for agent in result["agents"]:
+    algo = agent.get("algo", "sac_aug")  # (results before evaluate recorded it: SAC+AUG)
+    method = (agent.get("method") or paper_results.method_name(algo, agent["aug"])
+              or f"{algo}:{agent['aug']}")
+    groups.setdefault(method, []).append(agent)
+  config = result.get("config", {})
+  training = result.get("training") or {}
+  rows = []
+  for method, agents in groups.items():
+    train = float(np.mean([a["train"]["mean"] for a in agents]))
+    conditions = {c: float(np.mean([a["conditions"][c]["mean"] for a in agents]))
+                  for c in paper_results.COLUMNS if c in agents[0]["conditions"]}
+    all_ = conditions.get("all")
+    rows.append(dict(
+        task=result["task"], method=method, renderer=config.get("renderer", "pool"),
+        seeds=sorted(a["seed"] for a in agents), train=train, conditions=conditions,
+        e_g_all=None if all_ is None or train == 0 else (train - all_) / train,
+        steps=result.get("checkpoint_step"), action_repeat=result.get("action_repeat"),
+        protocol=dict(visual_seeds=config.get("visual_seeds"),
+                      dynamics_seeds=config.get("dynamics_seeds"),
+                      train_episodes=config.get("train_episodes"),
+                      quality=config.get("quality")),
+        train_wall_s=training.get("wall_s"), train_devices=training.get("devices", []),
+        eval_wall_s=result.get("wall_s"), eval_device=result.get("device"),
+        source=source))
+  return rows
+
+
+def collect(paths: list[str]) -> list[dict]:
+  """The rows of every `evaluate` JSON in `paths`, in the paper's task order.
+
+  Raises:
+    ValueError: a path that is not an `evaluate` result.
+  """
+  rows = []
+  for path in paths:
+    try:
+      with open(path) as f:
+        result = json.load(f)
+    except (OSError, json.JSONDecodeError) as e:
+      raise ValueError(f"{path}: cannot read an evaluate result ({e})") from None
+    if not isinstance(result, dict) or not {"task", "agents"} <= set(result):
+      raise ValueError(f"{path}: not an evaluate result (eval.json): no task and agents")
+    rows.extend(rows_of(result, path))
+  order = {task: i for i, task in enumerate(TRAINING_LENGTH)}
+  methods = {m: i for i, m in enumerate(paper_results.METHODS)}
+  return sorted(rows, key=lambda r: (order.get(r["task"], len(order)), r["task"],
+                                     methods.get(r["method"], len(methods)), r["renderer"]))
+
+
+def missing(rows: list[dict]) -> list[tuple[str, str]]:
+  """The `WANTED` rows with no pool evaluation among `rows`."""
+  have = {(r["task"], r["method"]) for r in rows if r["renderer"] == "pool"}
+  return [w for w in WANTED if w not in have]
+
+
+def _num(v, digits=1) -> str:
+  return "–" if v is None else f"{v:,.{digits}f}"
+
+
+def markdown(rows: list[dict]) -> str:
+  """The four parts of the module docstring as Markdown."""
+  cols = paper_results.COLUMNS
+  out = ["| task | method | renderer | seeds | train | " + " | ".join(cols)
+         + " | E_G (all) | all − paper |", "|---|---|---|---:|---:|" + "---:|" * len(cols)
+         + "---:|---:|"]
+  for r in rows:
+    paper = paper_results.table4(r["task"], r["method"])
+    cells = [_num(r["conditions"].get(c)) for c in cols]
+    diff = (None if paper is None or "all" not in r["conditions"]
+            else r["conditions"]["all"] - paper["all"])
+    e_g = "–" if r["e_g_all"] is None else f"{100 * r['e_g_all']:.1f} %"
+    out.append(f"| {r['task']} | {r['method']} | {r['renderer']} | {len(r['seeds'])} | "
+               f"{_num(r['train'])} | " + " | ".join(cells) + f" | {e_g} | {_num(diff)} |")
+    if paper is not None and r["renderer"] == "pool":
+      e_g = (paper["none"] - paper["all"]) / paper["none"]
+      out.append(f"| | paper | | 5 | {_num(paper['none'])} | "
+                 + " | ".join(_num(paper[c]) for c in cols) + f" | {100 * e_g:.1f} % | |")
+  out += ["", "(The paper's train return is its \"none\" column: its agents trained on "
+          "dm_control's look; its rows are means of five runs.)", "",
+          "| task | method | renderer | seeds | steps (paper) | action repeat (paper) | "
+          "protocol | training wall s | trained on | evaluation wall s | evaluated on | file |",
+          "|---|---|---|---|---|---|---|---:|---|---:|---|---|"]
+  for r in rows:
+    steps, repeat = TRAINING_LENGTH.get(r["task"], (None, None))
+    p = r["protocol"]
+    protocol = (f"{p['visual_seeds']} × {p['dynamics_seeds']}, train {p['train_episodes']}, "
+                f"{p['quality'] if r['renderer'] == 'pool' else 'ray caster'}")
+    out.append(f"| {r['task']} | {r['method']} | {r['renderer']} | "
+               f"{', '.join(map(str, r['seeds']))} | {_num(r['steps'], 0)} ({_num(steps, 0)}) | "
+               f"{r['action_repeat'] or '–'} ({repeat or '–'}) | {protocol} | "
+               f"{_num(r['train_wall_s'], 0)} | {', '.join(r['train_devices']) or '–'} | "
+               f"{_num(r['eval_wall_s'], 0)} | {r['eval_device'] or '–'} | "
+               f"`{r['source']}` |")
+  pairs = [(a, b) for a in rows for b in rows if a["renderer"] == "pool"
+           and b["renderer"] == "jax" and (a["task"], a["method"]) == (b["task"], b["method"])]
+  if pairs:
+    out += ["", "Ray caster minus pool, per condition (the same agents' returns):", "",
+            "| task | method | train | " + " | ".join(cols) + " |",
+            "|---|---|---:|" + "---:|" * len(cols)]
+    for pool, jax_row in pairs:
+      d = lambda c: (None if c not in pool["conditions"] or c not in jax_row["conditions"]
+                     else jax_row["conditions"][c] - pool["conditions"][c])
+      out.append(f"| {pool['task']} | {pool['method']} | "
+                 f"{_num(jax_row['train'] - pool['train'])} | "
+                 + " | ".join(_num(d(c)) for c in cols) + " |")
+  gaps = missing(rows)
+  out += ["", "Still missing (evaluated with the pool): "
+          + (", ".join(f"{m} on {t}" for t, m in gaps) if gaps else "none") + "."]
+  return "\n".join(out) + "\n"
+
+
+def main(argv=None) -> None:
+  """Command-line entry (module docstring)."""
+  p = argparse.ArgumentParser(prog="python -m dmcr_jax.benchmarks.paper_table",
+                              description=__doc__.splitlines()[0])
+  p.add_argument("results", nargs="+", metavar="EVAL_JSON", help="evaluate's eval.json files")
+  p.add_argument("--out", default=None,
+                 help="Markdown path (its .json beside it; default: print only)")
+  a = p.parse_args(argv)
+  try:
+    rows = collect(a.results)
+  except ValueError as e:
+    p.error(str(e))
+  table = markdown(rows)
+  print(table, end="")
+  if a.out:
+    os.makedirs(os.path.dirname(a.out) or ".", exist_ok=True)
+    with open(a.out, "w") as f:
+      f.write("Our rows beside the DMCR paper's (`python -m dmcr_jax.benchmarks.paper_table "
+              + " ".join(a.results) + "`).\n\n" + table)
+    with open(os.path.splitext(a.out)[0] + ".json", "w") as f:
+      json.dump(dict(rows=rows, missing=missing(rows)), f, indent=1)
+
+
+if __name__ == "__main__":
+  main()

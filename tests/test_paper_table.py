@@ -1,0 +1,86 @@
+"""Tests of `dmcr_jax.benchmarks.paper_table` on synthetic `evaluate` results."""
+
+import json
+
+import numpy as np
+import pytest
+
+from dmcr_jax.benchmarks import paper_table
+from dmcr_jax.train import paper_results
+
+COLS = paper_results.COLUMNS
+
+
+def eval_json(path, task, agents, renderer="pool", training=None):
+  """A minimal eval.json: agents as (seed, aug, train return, {condition: return})."""
+  result = dict(
+      task=task, checkpoint_step=250_000, action_repeat=2, device="GPU X",
+      training=training, wall_s=400.0,
+      config=dict(visual_seeds=100, dynamics_seeds=3, train_episodes=100, quality="exact",
+                  renderer=renderer),
+      agents=[dict(agent=i, seed=seed, aug=aug, algo="sac_aug",
+                   method=paper_results.method_name("sac_aug", aug),
+                   train=dict(mean=train),
+                   conditions={c: dict(mean=v) for c, v in conds.items()})
+              for i, (seed, aug, train, conds) in enumerate(agents)])
+  with open(path, "w") as f:
+    json.dump(result, f)
+  return str(path)
+
+
+def returns(base):
+  return {c: base - 10.0 * i for i, c in enumerate(COLS)}
+
+
+def test_rows_average_seeds_and_stand_beside_the_papers(tmp_path, capsys):
+  pool = eval_json(tmp_path / "w.json", "walker-walk",
+                   [(0, "drq", 900.0, returns(800.0)), (1, "drq", 920.0, returns(820.0)),
+                    (0, "cj+drq", 910.0, returns(850.0))],
+                   training=dict(wall_s=1234.0, devices=["GPU X"], num_envs=16))
+  ray = eval_json(tmp_path / "wj.json", "walker-walk",
+                  [(0, "drq", 905.0, returns(790.0)), (1, "drq", 915.0, returns(830.0))],
+                  renderer="jax")
+  rows = paper_table.collect([ray, pool])
+  assert [(r["method"], r["renderer"]) for r in rows] == [
+      ("SAC+AUG", "jax"), ("SAC+AUG", "pool"), ("SAC+CJ+AUG", "pool")]
+  aug = rows[1]
+  assert aug["seeds"] == [0, 1] and aug["train"] == pytest.approx(910.0)
+  want = {c: np.mean([800.0 - 10 * i, 820.0 - 10 * i]) for i, c in enumerate(COLS)}
+  assert aug["conditions"] == pytest.approx(want)
+  assert aug["e_g_all"] == pytest.approx((910.0 - want["all"]) / 910.0)
+  assert aug["train_wall_s"] == 1234.0 and aug["train_devices"] == ["GPU X"]
+
+  paper_table.main([pool, ray, "--out", str(tmp_path / "t" / "table.md")])
+  text = (tmp_path / "t" / "table.md").read_text()
+  paper_all = paper_results.table4("walker-walk", "SAC+AUG")["all"]
+  assert f"{want['all'] - paper_all:,.1f}" in text      # our "all" minus the paper's
+  assert "| | paper | | 5 | 919.3 |" in text              # the paper's row under ours
+  # Ray caster minus pool: train 910 − 910 = 0, every condition 810 − 810 = 0.
+  assert "| walker-walk | SAC+AUG | 0.0 | " + " | ".join(["0.0"] * len(COLS)) + " |" in text
+  assert "SAC+CJ+AUG on walker-walk" not in text.split("Still missing")[1]
+  assert "SAC+AUG on cheetah-run" in text.split("Still missing")[1]
+  saved = json.loads((tmp_path / "t" / "table.json").read_text())
+  assert len(saved["rows"]) == 3 and ["walker-walk", "SAC+AUG"] not in saved["missing"]
+  capsys.readouterr()
+
+
+def test_results_before_evaluate_recorded_the_method_still_name_it(tmp_path):
+  path = eval_json(tmp_path / "c.json", "cartpole-balance", [(0, "drq", 966.0, returns(900.0))])
+  result = json.loads(open(path).read())
+  for agent in result["agents"]:
+    del agent["method"], agent["algo"]
+  del result["training"], result["device"]
+  with open(path, "w") as f:
+    json.dump(result, f)
+  (row,) = paper_table.collect([path])
+  assert row["method"] == "SAC+AUG" and row["train_devices"] == [] and row["eval_device"] is None
+
+
+def test_what_is_not_an_evaluate_result_is_refused(tmp_path, capsys):
+  bad = tmp_path / "bad.json"
+  bad.write_text(json.dumps({"rows": []}))
+  for path in (str(bad), str(tmp_path / "missing.json")):
+    with pytest.raises(SystemExit):
+      paper_table.main([path])
+  err = capsys.readouterr().err
+  assert "not an evaluate result" in err and "cannot read" in err
