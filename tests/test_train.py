@@ -205,6 +205,7 @@ def test_no_update_is_owed_until_the_buffers_refill(start):
     assert pairs_run == [0, 0, 1, 2, 2, 2, 2, 2, 2, 2]
 
 
+@pytest.mark.slow
 def test_host_and_device_drivers_train_identical_agents(tmp_path):
   # One training step, two drivers: fed the same frames (the ray caster's), the
   # host driver (jitted act/learn/store around the env) and the device driver
