@@ -28,15 +28,16 @@ import os
 
 import numpy as np
 
+from dmcr_jax.env import ACTION_REPEAT
 from dmcr_jax.train import paper_results
 
-TRAINING_LENGTH = {"walker-walk": (250_000, 2), "cheetah-run": (250_000, 4),
-                   "hopper-stand": (250_000, 4), "finger-spin": (100_000, 2),
-                   "ball_in_cup-catch": (75_000, 4), "cartpole-balance": (50_000, 8)}
-"""The paper's training steps (transitions) and action repeat per task (its
-appendix table of training lengths), in its order."""
+TRAINING_STEPS = {"walker-walk": 250_000, "cheetah-run": 250_000, "hopper-stand": 250_000,
+                  "finger-spin": 100_000, "ball_in_cup-catch": 75_000,
+                  "cartpole-balance": 50_000}
+"""The paper's training steps (transitions) per task (its appendix table of training
+lengths, in its order; the same table's action repeats are `dmcr_jax.env.ACTION_REPEAT`)."""
 
-WANTED = tuple((task, "SAC+AUG") for task in TRAINING_LENGTH) + (
+WANTED = tuple((task, "SAC+AUG") for task in TRAINING_STEPS) + (
     ("walker-walk", "SAC+CJ+AUG"), ("cheetah-run", "SAC+CJ+AUG"))
 """The (task, method) rows the table is to hold, evaluated with the pool."""
 
@@ -88,7 +89,7 @@ def collect(paths: list[str]) -> list[dict]:
     if not isinstance(result, dict) or not {"task", "agents"} <= set(result):
       raise ValueError(f"{path}: not an evaluate result (eval.json): no task and agents")
     rows.extend(rows_of(result, path))
-  order = {task: i for i, task in enumerate(TRAINING_LENGTH)}
+  order = {task: i for i, task in enumerate(TRAINING_STEPS)}
   methods = {m: i for i, m in enumerate(paper_results.METHODS)}
   return sorted(rows, key=lambda r: (order.get(r["task"], len(order)), r["task"],
                                      methods.get(r["method"], len(methods)), r["renderer"]))
@@ -128,7 +129,7 @@ def markdown(rows: list[dict]) -> str:
           "protocol | training wall s | trained on | evaluation wall s | evaluated on | file |",
           "|---|---|---|---|---|---|---|---:|---|---:|---|---|"]
   for r in rows:
-    steps, repeat = TRAINING_LENGTH.get(r["task"], (None, None))
+    steps, repeat = TRAINING_STEPS.get(r["task"]), ACTION_REPEAT.get(r["task"])
     p = r["protocol"]
     protocol = (f"{p['visual_seeds']} × {p['dynamics_seeds']}, train {p['train_episodes']}, "
                 f"{p['quality'] if r['renderer'] == 'pool' else 'ray caster'}")
