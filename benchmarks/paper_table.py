@@ -16,7 +16,7 @@ table and E_G of "all" (computed from those means, as the paper does). Writes
   render quality), training wall time and devices (from the run's summary.json,
   when the agents came with it), evaluation wall time and device, and its file;
 - the ray caster against the pool, condition by condition, where a task and
-  method were evaluated with both;
+  method were evaluated with both (over the seeds evaluated with both);
 - which rows the paper-table issue asks for are still missing.
 """
 
@@ -28,7 +28,7 @@ import os
 
 import numpy as np
 
-from dmcr_jax.env import ACTION_REPEAT
+from dmcr_jax.env import ACTION_REPEAT, default_frame_skip
 from dmcr_jax.train import paper_results
 
 TRAINING_STEPS = {"walker-walk": 250_000, "cheetah-run": 250_000, "hopper-stand": 250_000,
@@ -61,8 +61,12 @@ def rows_of(result: dict, source: str) -> list[dict]:
     rows.append(dict(
         task=result["task"], method=method, renderer=config.get("renderer", "pool"),
         seeds=sorted(a["seed"] for a in agents), train=train, conditions=conditions,
+        by_seed={a["seed"]: dict(train=a["train"]["mean"],
+                                 conditions={c: a["conditions"][c]["mean"] for c in conditions})
+                 for a in agents},
         e_g_all=None if all_ is None or train == 0 else (train - all_) / train,
-        steps=result.get("checkpoint_step"), action_repeat=result.get("action_repeat"),
+        steps=result.get("checkpoint_step"),
+        action_repeat=result.get("action_repeat") or default_frame_skip(result["task"]),
         protocol=dict(visual_seeds=config.get("visual_seeds"),
                       dynamics_seeds=config.get("dynamics_seeds"),
                       train_episodes=config.get("train_episodes"),
@@ -141,16 +145,22 @@ def markdown(rows: list[dict]) -> str:
                f"`{r['source']}` |")
   pairs = [(a, b) for a in rows for b in rows if a["renderer"] == "pool"
            and b["renderer"] == "jax" and (a["task"], a["method"]) == (b["task"], b["method"])]
+  pairs = [(a, b, sorted(set(a["by_seed"]) & set(b["by_seed"]))) for a, b in pairs]
+  pairs = [(a, b, seeds) for a, b, seeds in pairs if seeds]
   if pairs:
-    out += ["", "Ray caster minus pool, per condition (the same agents' returns):", "",
-            "| task | method | train | " + " | ".join(cols) + " |",
-            "|---|---|---:|" + "---:|" * len(cols)]
-    for pool, jax_row in pairs:
-      d = lambda c: (None if c not in pool["conditions"] or c not in jax_row["conditions"]
-                     else jax_row["conditions"][c] - pool["conditions"][c])
-      out.append(f"| {pool['task']} | {pool['method']} | "
-                 f"{_num(jax_row['train'] - pool['train'])} | "
-                 + " | ".join(_num(d(c)) for c in cols) + " |")
+    out += ["", "Ray caster minus pool, per condition (mean over the seeds evaluated with both):",
+            "", "| task | method | seeds | train | " + " | ".join(cols) + " |",
+            "|---|---|---|---:|" + "---:|" * len(cols)]
+    for pool, jax_row, seeds in pairs:
+      def d(c=None):
+        runs = [(pool["by_seed"][s], jax_row["by_seed"][s]) for s in seeds]
+        if c is None:
+          return float(np.mean([j["train"] - p["train"] for p, j in runs]))
+        if any(c not in p["conditions"] or c not in j["conditions"] for p, j in runs):
+          return None
+        return float(np.mean([j["conditions"][c] - p["conditions"][c] for p, j in runs]))
+      out.append(f"| {pool['task']} | {pool['method']} | {', '.join(map(str, seeds))} | "
+                 f"{_num(d())} | " + " | ".join(_num(d(c)) for c in cols) + " |")
   gaps = missing(rows)
   out += ["", "Still missing (evaluated with the pool): "
           + (", ".join(f"{m} on {t}" for t, m in gaps) if gaps else "none") + "."]

@@ -55,8 +55,8 @@ def test_rows_average_seeds_and_stand_beside_the_papers(tmp_path, capsys):
   paper_all = paper_results.table4("walker-walk", "SAC+AUG")["all"]
   assert f"{want['all'] - paper_all:,.1f}" in text      # our "all" minus the paper's
   assert "| | paper | | 5 | 919.3 |" in text              # the paper's row under ours
-  # Ray caster minus pool: train 910 − 910 = 0, every condition 810 − 810 = 0.
-  assert "| walker-walk | SAC+AUG | 0.0 | " + " | ".join(["0.0"] * len(COLS)) + " |" in text
+  # Ray caster minus pool, seed by seed: (+5, −10 per condition) and (−5, +10): means 0.
+  assert "| walker-walk | SAC+AUG | 0, 1 | 0.0 | " + " | ".join(["0.0"] * len(COLS)) + " |" in text
   assert "SAC+CJ+AUG on walker-walk" not in text.split("Still missing")[1]
   assert "SAC+AUG on cheetah-run" in text.split("Still missing")[1]
   saved = json.loads((tmp_path / "t" / "table.json").read_text())
@@ -84,3 +84,25 @@ def test_what_is_not_an_evaluate_result_is_refused(tmp_path, capsys):
       paper_table.main([path])
   err = capsys.readouterr().err
   assert "not an evaluate result" in err and "cannot read" in err
+
+
+def test_a_run_at_the_default_action_repeat_reports_the_tasks_value(tmp_path):
+  # Older eval.json files record None for a run trained at the task's default repeat.
+  path = eval_json(tmp_path / "c.json", "cartpole-balance", [(0, "drq", 900.0, returns(800.0))])
+  with open(path) as f:
+    result = json.load(f)
+  result["action_repeat"] = None
+  with open(path, "w") as f:
+    json.dump(result, f)
+  [row] = paper_table.collect([path])
+  assert row["action_repeat"] == 8   # the paper's Table 4 value for cartpole
+
+
+def test_ray_caster_minus_pool_uses_only_the_seeds_evaluated_with_both(tmp_path):
+  pool = eval_json(tmp_path / "p.json", "ball_in_cup-catch", [(0, "drq", 950.0, returns(600.0))])
+  ray = eval_json(tmp_path / "j.json", "ball_in_cup-catch",
+                  [(0, "drq", 960.0, returns(630.0)), (1, "drq", 100.0, returns(0.0))],
+                  renderer="jax")
+  text = paper_table.markdown(paper_table.collect([pool, ray]))
+  # Seed 1 (jax only) would pull the means far down; the difference is seed 0's alone.
+  assert "| ball_in_cup-catch | SAC+AUG | 0 | 10.0 | " + " | ".join(["30.0"] * len(COLS)) + " |" in text

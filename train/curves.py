@@ -29,6 +29,7 @@ import argparse
 import csv
 import json
 import os
+import shlex
 import sys
 import warnings
 
@@ -210,7 +211,7 @@ def main(argv=None) -> None:
     with open(os.path.join(a.out, "curves.json"), "w") as f:
       json.dump(result, f, indent=1)
     with open(os.path.join(a.out, "curves.md"), "w") as f:
-      f.write(f"`python -m dmcr_jax.train.curves {' '.join(sys.argv[1:] if argv is None else argv)}`"
+      f.write(f"`python -m dmcr_jax.train.curves {shlex.join(sys.argv[1:] if argv is None else argv)}`"
               "\n\n" + table)
     plot(result, os.path.join(a.out, "curves.png"))
 

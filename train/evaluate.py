@@ -56,6 +56,7 @@ import numpy as np
 
 from dmcr_jax import SeedRange
 from dmcr_jax.checks import positive_int
+from dmcr_jax.env import default_frame_skip
 from dmcr_jax.train import loop, paper_results, sac
 from dmcr_jax.train.step import to_env_action
 
@@ -326,7 +327,7 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
   if bar is not None:
     bar.close()
   summary = dict(run_dir=run_dir, task=train_cfg.task, checkpoint_step=step,
-                 action_repeat=train_cfg.action_repeat,
+                 action_repeat=train_cfg.action_repeat or default_frame_skip(train_cfg.task),
                  device=jax.devices()[0].device_kind, training=training_record(run_dir),
                  config=dataclasses.asdict(cfg), conditions=list(conditions),
                  test_visual_seeds=test_seeds.tolist(),
