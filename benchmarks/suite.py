@@ -100,7 +100,7 @@ _PLANS: dict[str, dict[str, dict[str, str]]] = {
         "step_profile": {"": "step_profile --task walker-walk --sizes 1024 --quality fastest "
                              "--steps 20 --batch 256 --capacity 100000"},
         # End to end against the learner alone, both renderers.
-        "train": {suffix: "training --task ball_in_cup-catch --steps 12000 --num-envs 16 "
+        "train": {suffix: "training --task ball_in_cup-catch --steps 24000 "
                           "--dtype bfloat16 --quality exact --log-every 500" + extra
                   for suffix, extra in (("", ""), ("-jax", " --renderer jax"))},
     },

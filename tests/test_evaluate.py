@@ -15,7 +15,7 @@ from dmcr_jax.train import loop, sac
 pytestmark = pytest.mark.xdist_group("evaluate")
 
 # Cartpole at action repeat 100: 10 agent steps per episode.
-CFG = loop.TrainConfig(task="cartpole-balance", action_repeat=100, image_size=16, seeds=(0, 1),
+CFG = loop.TrainConfig(task="cartpole-balance", action_repeat=100, image_size=16, seeds=(0, 1), num_envs=1,
                        quality="fastest", workers=1,
                        sac=sac.SACConfig(batch_size=8, conv_channels=4, feature_dim=8,
                                          hidden_dim=16))

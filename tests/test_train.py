@@ -19,7 +19,7 @@ from dmcr_jax.train.__main__ import parse
 pytestmark = pytest.mark.xdist_group("train")
 
 TINY = sac.SACConfig(batch_size=8, conv_channels=4, feature_dim=8, hidden_dim=16)
-CFG = dict(task="pendulum-swingup", action_repeat=100, image_size=16, buffer_capacity=200,
+CFG = dict(task="pendulum-swingup", action_repeat=100, image_size=16, buffer_capacity=200, num_envs=1,
            warmup_steps=5, quality="fastest", workers=1, log_every=5, sac=TINY)
 
 

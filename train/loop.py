@@ -117,7 +117,11 @@ class TrainConfig:
     steps: training steps (transitions) per agent (the paper's Sec. 4 and Table 4).
     seeds: one agent per seed (network init, exploration, dynamics) and per
       augmentation in `sac.aug`.
-    num_envs: envs per agent.
+    num_envs: envs per agent; each vector step stores N transitions per agent, and
+      the updates owed for them (N·utd) run before the next. 32 by default: the
+      step's fixed cost (act, frames, store, the host's turnaround) is spread
+      over more transitions. (The paper trained one env; learning at equal
+      transition counts against 16 envs: benchmarks/results/num_envs_curves_h200.)
     action_repeat: None = the paper's Table 4 value for the task.
     visual_seeds: an int (fixed look; 0 = dm_control's) or "levels:<n>[,<n>…]"
       (few-shot: every episode draws a look from seeds [0, n); several counts
@@ -153,7 +157,7 @@ class TrainConfig:
   task: str = "cartpole-balance"
   steps: int = 50_000
   seeds: tuple[int, ...] = (0,)
-  num_envs: int = 1
+  num_envs: int = 32
   action_repeat: int | None = None
   visual_seeds: int | str = 0
   vary: str = "all"
