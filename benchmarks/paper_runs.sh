@@ -1,0 +1,68 @@
+#!/usr/bin/env bash
+# The paper-table runs (issue 27) on every local GPU: train each job at the paper's length and
+# action repeat, then evaluate it with the full protocol, ray caster first (minutes), then the pool
+# (the exact look), and export its agents. One job per GPU at a time; job i runs on GPU i mod G.
+#
+#   benchmarks/paper_runs.sh OUT_DIR JOB [JOB ...]      JOB = task:aug[:seeds], e.g.
+#   benchmarks/paper_runs.sh runs/paper walker-walk:drq cheetah-run:drq hopper-stand:drq finger-spin:drq
+#   benchmarks/paper_runs.sh runs/paper walker-walk:cj+drq:0,1
+#
+# Run from the project root with the project importable (`python3 -m dmcr_jax.train` works) and
+# MUJOCO_GL=egl. Per job it writes OUT_DIR/<task>-<aug>-s<seeds>/: run/ (train's folder), eval_jax/
+# and eval_pool/ (evaluate's eval.json, .md, .png), agents/ (export_params), and one log per step.
+# A step whose output exists is skipped, so calling it again after an interruption goes on where it
+# stopped. Environment: STEPS (override the paper's length, for a smoke test), TRAIN_ARGS and
+# EVAL_ARGS (extra flags), SKIP_POOL=1 (ray-caster evaluation only), WORKERS (render workers per job;
+# default: the cores divided among the GPUs, at most 16).
+set -uo pipefail
+[ $# -ge 2 ] || { sed -n 2,9p "$0"; exit 2; }
+OUT=$1; shift
+mkdir -p "$OUT"
+GPUS=$(nvidia-smi -L 2>/dev/null | wc -l); [ "$GPUS" -ge 1 ] || GPUS=1
+CORES=$(nproc)
+WORKERS=${WORKERS:-$(( CORES / GPUS > 16 ? 16 : (CORES / GPUS > 1 ? CORES / GPUS : 1) ))}
+PHYS=$(( WORKERS / 2 ))
+steps_of() {
+  python3 -c "from dmcr_jax.benchmarks.paper_table import TRAINING_STEPS as T; import sys; print(T[sys.argv[1]])" "$1"
+}
+# Refuse a bad job before anything starts.
+for job in "$@"; do
+  IFS=: read -r task aug seeds <<< "$job"
+  [ -n "$aug" ] || { echo "job $job: want task:aug[:seeds]" >&2; exit 2; }
+  [ -n "${STEPS:-}" ] || steps_of "$task" > /dev/null 2>&1 || {
+    echo "job $job: $task is not one of the paper table's tasks" >&2; exit 2; }
+done
+
+run_job() {  # GPU JOB
+  local gpu=$1 task aug seeds; IFS=: read -r task aug seeds <<< "$2"; seeds=${seeds:-0}
+  local dir="$OUT/$task-${aug//+/}-s${seeds//,/_}" steps=${STEPS:-$(steps_of "$task")}
+  mkdir -p "$dir"
+  local on="env CUDA_VISIBLE_DEVICES=$gpu MUJOCO_EGL_DEVICE_ID=$gpu"
+  [ "$GPUS" -gt 1 ] || on="env"
+  if [ ! -f "$dir/run/summary.json" ]; then
+    $on python3 -m dmcr_jax.train --task "$task" --aug "$aug" --seeds "$seeds" --steps "$steps" \
+      --dtype bfloat16 --checkpoint-every 10000 --log-every 500 --no-progress \
+      --workers "$WORKERS" --physics-workers "$PHYS" --out "$dir/run" \
+      $( [ -d "$dir/run/checkpoints" ] && echo --resume ) ${TRAIN_ARGS:-} > "$dir/train.log" 2>&1 \
+      || { echo "$2: training failed, see $dir/train.log" >&2; return 1; }
+  fi
+  [ -f "$dir/agents/config.json" ] || python3 -m dmcr_jax.benchmarks.export_params export \
+      "$dir/run" "$dir/agents" > "$dir/export.log" 2>&1
+  [ -f "$dir/eval_jax/eval.json" ] || $on python3 -m dmcr_jax.train.evaluate "$dir/run" \
+      --renderer jax --no-progress --out "$dir/eval_jax" ${EVAL_ARGS:-} > "$dir/eval_jax.log" 2>&1
+  [ -n "${SKIP_POOL:-}" ] || [ -f "$dir/eval_pool/eval.json" ] || $on python3 -m dmcr_jax.train.evaluate \
+      "$dir/run" --workers "$WORKERS" --no-progress --out "$dir/eval_pool" ${EVAL_ARGS:-} \
+      > "$dir/eval_pool.log" 2>&1
+  echo "$2: done ($dir)"
+}
+
+gpu_queue() {  # GPU: the jobs i with i mod GPUS == GPU, one after the other
+  local gpu=$1 i=0; shift
+  for job in "$@"; do
+    [ $(( i % GPUS )) -eq "$gpu" ] && run_job "$gpu" "$job"
+    i=$(( i + 1 ))
+  done
+}
+
+for (( g = 0; g < GPUS; g++ )); do gpu_queue "$g" "$@" & done
+wait
