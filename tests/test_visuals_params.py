@@ -16,7 +16,10 @@ N = 256                       # one batch size for most tests: one compilation
 SEEDS = np.arange(1, N + 1)
 FIELDS = ("cam_pos", "cam_rot", "light_pos", "light_dir", "headlight_ambient",
           "headlight_diffuse", "headlight_specular", "body_rgba", "effector_rgba",
-          "target_rgba", "floor_id", "background_id", "floor_reflectance")
+          "target_rgba", "floor_id", "background_id", "floor_reflectance",
+          "light_diffuse", "light_specular")
+# The fields RECORDED_WALKER_HASH covers (those before finger's light colour).
+RECORDED_FIELDS = FIELDS[:13]
 FACTOR_FIELDS = {f: [k for k, v in P._FIELD_FACTOR.items() if v == f] for f in V.FACTORS}
 
 
@@ -142,6 +145,7 @@ def test_deterministic_and_recorded():
   h = hashlib.sha256()
   for k in FIELDS + ("varied", "seed"):
     np.testing.assert_array_equal(np.asarray(getattr(a, k)), np.asarray(getattr(b, k)))
+  for k in RECORDED_FIELDS + ("varied", "seed"):
     h.update(np.ascontiguousarray(np.asarray(getattr(a, k))[:5]).tobytes())
   assert h.hexdigest()[:16] == RECORDED_WALKER_HASH
   # A seed's look does not depend on the batch it is in (nor on its position).

@@ -13,8 +13,9 @@ What it reproduces of MuJoCo's fixed-function renderer (render_gl3.c, 3.x):
   spheres, ellipsoids, capsules, cylinders (with caps) and boxes;
 * shading, per pixel (MuJoCo lights per vertex): the headlight (a directional
   light along the camera's forward axis) and the model's lights (directional or
-  spot with cutoff, exponent and attenuation), each with ambient, diffuse and
-  specular terms (local viewer, Blinn half vector, GL exponent 128 × shininess),
+  spot with cutoff, exponent and attenuation; the light a look moves takes the
+  look's diffuse and specular colour), each with ambient, diffuse and specular
+  terms (local viewer, Blinn half vector, GL exponent 128 × shininess),
   material emission; colours clamp per pass as in GL;
 * shadows (`shadows=True`): the shadow-casting light lights only the points a
   ray towards it reaches without hitting a geom (MuJoCo: shadow map); as in
@@ -466,8 +467,10 @@ def pack_env(scene: Scene, bp: BodyPoses, look: DeviceLook,
                           jnp.asarray(scene.types, jnp.float32)[:, None]], axis=1)
   cam_pos, cam_mat = camera_frame(scene, bp, look)
   lpos, ldir = _lights(scene, bp, look)
+  looked = lambda l, own, field: own if l == scene.light_looked else field[l]
   lights = [jnp.concatenate([lpos[l], ldir[l], scene.light_ambient[l],
-                             scene.light_diffuse[l], scene.light_specular[l],
+                             looked(l, look.light_diffuse, scene.light_diffuse),
+                             looked(l, look.light_specular, scene.light_specular),
                              scene.light_attenuation[l], scene.light_cutoff[l][None],
                              scene.light_exponent[l][None]]) for l in range(len(lpos))]
   f = look.floor

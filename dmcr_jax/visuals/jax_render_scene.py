@@ -20,7 +20,8 @@ render model's bank, prepared for sampling on the device:
 camera. `device_looks(scene, looks)` turns the host `render_model.Looks` of a
 batch (what `prepare` computes from `VisualParams`, in float64) into the
 `DeviceLook` pytree the renderer reads: the material colour table, floor and
-sky indices, floor reflectance, headlight, and the camera and light poses in
+sky indices, floor reflectance, headlight, the moved light's colour, and the
+camera and light poses in
 the form MuJoCo's camera/light modes use (`cam_pos`, `cam_quat`, `cam_pos0`,
 `cam_poscom0`, `cam_mat0`, …).
 """
@@ -164,6 +165,8 @@ class DeviceLook:
     cam_pos, cam_quat, cam_pos0, cam_poscom0, cam_mat0: camera 0 (MuJoCo's
       fields; `cam_mat0` is 9 numbers, row-major).
     light_pos, light_dir, light_pos0, light_poscom0, light_dir0: the moved light.
+    light_diffuse, light_specular: (3,) its diffuse and specular RGB (used in
+      place of the scene's `light_diffuse/specular` row of that light).
   """
   mat_rgba: jax.Array
   floor: jax.Array
@@ -180,6 +183,8 @@ class DeviceLook:
   light_pos0: jax.Array
   light_poscom0: jax.Array
   light_dir0: jax.Array
+  light_diffuse: jax.Array
+  light_specular: jax.Array
 
   def take(self, index) -> "DeviceLook":
     """The looks at `index` of a batched `DeviceLook`."""
@@ -470,7 +475,8 @@ def device_looks(scene: Scene, rm: rmod.RenderModel, looks: rmod.Looks) -> Devic
       cam_poscom0=f32(looks.cam_poscom0), cam_mat0=f32(looks.cam_mat0),
       light_pos=f32(looks.light_pos), light_dir=f32(looks.light_dir),
       light_pos0=f32(looks.light_pos0), light_poscom0=f32(looks.light_poscom0),
-      light_dir0=f32(looks.light_dir0))
+      light_dir0=f32(looks.light_dir0), light_diffuse=f32(looks.light_diffuse),
+      light_specular=f32(looks.light_specular))
 
 
 @struct.dataclass
@@ -489,6 +495,7 @@ class LookMaker:
     consts: the render model's defaults and frames as float32 / int32 arrays.
     domain, num_floors, num_backgrounds: static; the domain and its bank sizes.
     light_moves: static; whether the domain's look moves a light.
+    light_coloured: static; whether it also changes that light's colour.
   """
   mask: jax.Array
   consts: dict
@@ -496,6 +503,7 @@ class LookMaker:
   num_floors: int = struct.field(pytree_node=False, default=1)
   num_backgrounds: int = struct.field(pytree_node=False, default=1)
   light_moves: bool = struct.field(pytree_node=False, default=False)
+  light_coloured: bool = struct.field(pytree_node=False, default=False)
 
   def __call__(self, seeds: jax.Array) -> DeviceLook:
     """The `DeviceLook`s of int32 (N,) visual seeds (jittable; leading axis N)."""
@@ -539,6 +547,7 @@ class LookMaker:
     lxdir = rmod._rotate(lquat, ldir, jnp)
     lm = (on("light") & self.light_moves)[:, None]
     light = lambda x, d: jnp.where(lm, x, d)
+    lc = (on("light") & self.light_coloured)[:, None]
     return DeviceLook(
         mat_rgba=mat_rgba, floor=floor.astype(jnp.int32), floor_reflectance=refl,
         sky=sky.astype(jnp.int32), headlight=sel("light", head, c["headlight"]),
@@ -548,7 +557,9 @@ class LookMaker:
         light_pos=light(p.light_pos, c["light_pos"]), light_dir=light(ldir, c["light_dir"]),
         light_pos0=light(lxpos - lxpos_b, c["light_pos0"]),
         light_poscom0=light(lxpos - lcom, c["light_poscom0"]),
-        light_dir0=light(lxdir, c["light_dir0"]))
+        light_dir0=light(lxdir, c["light_dir0"]),
+        light_diffuse=jnp.where(lc, p.light_diffuse, c["light_diffuse"]),
+        light_specular=jnp.where(lc, p.light_specular, c["light_specular"]))
 
 
 def look_maker(scene: Scene, rm: rmod.RenderModel, vary) -> LookMaker:
@@ -570,7 +581,8 @@ def look_maker(scene: Scene, rm: rmod.RenderModel, vary) -> LookMaker:
   f32 = lambda x: jnp.asarray(np.asarray(x, np.float32))
   consts = {k: f32(d[k]) for k in ("headlight", "cam_pos", "cam_quat", "cam_pos0",
                                    "cam_poscom0", "cam_mat0", "light_pos", "light_dir",
-                                   "light_pos0", "light_poscom0", "light_dir0")}
+                                   "light_pos0", "light_poscom0", "light_dir0",
+                                   "light_diffuse", "light_specular")}
   consts.update(
       mat_rgba=f32(d["mat_rgba"][mats]), slot_group=jnp.asarray(group),
       body_rgba=f32(d["mat_rgba"][rm.body_mats[0]]),
@@ -582,7 +594,8 @@ def look_maker(scene: Scene, rm: rmod.RenderModel, vary) -> LookMaker:
   return LookMaker(mask=jnp.asarray(factor_mask(rm.domain, vary)), consts=consts,
                    domain=rm.domain, num_floors=int(rm.bank.num_floors),
                    num_backgrounds=int(rm.bank.num_backgrounds),
-                   light_moves=R.DOMAIN_RANGES[rm.domain].light_pos is not None)
+                   light_moves=R.DOMAIN_RANGES[rm.domain].light_pos is not None,
+                   light_coloured=R.DOMAIN_RANGES[rm.domain].light_diffuse is not None)
 
 
 @struct.dataclass

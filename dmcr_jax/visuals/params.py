@@ -3,24 +3,27 @@
 `sample(domain, seeds, vary)` turns a batch of integer visual seeds into a
 `VisualParams` pytree whose arrays have a leading batch axis: everything the
 renderer needs to draw that look (material colours, floor and skybox texture
-ids, floor reflectance, headlight, light pose, camera pose). Seed 0 is always
-dm_control's default look; so is every factor that `vary` leaves off or that
-does not apply to the domain (the paper's Table 5, see `factors.py`).
+ids, floor reflectance, headlight, light pose and colour, camera pose). Seed 0
+is always dm_control's default look; so is every factor that `vary` leaves off
+or that does not apply to the domain (the paper's Table 5, see `factors.py`).
 
 Streams: factor `f` of seed `s` draws from its own fold-ins of the seed's key,
 `fold_in(key(s), FACTOR_IDS[f] · 256 + j)` for j = 0, 1, … (a fixed number per
 factor; each gives two 32-bit words, each word two 16-bit draws). Switching a factor on
 or off never changes another factor's values, and different factors' draws are
-independent (distinct threefry streams).
+independent (distinct threefry streams). Draws added to a factor after its first
+release come from further fold-ins j of the same factor (`_EXTRA_WORDS`), after the
+ones it had, so that no look drawn before changes: finger's light colour uses
+j = 4, 5 of the light factor.
 
 Bit-exact on every backend: each uniform is `low + k * step` with `k` a 16-bit
 integer from the stream and `step` a float32 with at most 8 significant bits,
 so the product is exact and the sum is rounded once (the same with or without
-fused multiply-add); the few derived values (headlight jitter sums, clipping,
-light direction = aim − position) are single IEEE operations. `VisualParams`
-are therefore bit-identical on CPU, GPU and TPU, and everything nonlinear
-(normalising the light direction, Euler angles to quaternions) happens on the
-host in float64 when a look is applied (`render_model.prepare`).
+fused multiply-add); the few derived values (headlight and light colour jitter
+sums, clipping, light direction = aim − position) are single IEEE operations.
+`VisualParams` are therefore bit-identical on CPU, GPU and TPU, and everything
+nonlinear (normalising the light direction, Euler angles to quaternions) happens
+on the host in float64 when a look is applied (`render_model.prepare`).
 """
 
 from __future__ import annotations
@@ -46,6 +49,12 @@ MAX_SEED = 2**31 - 1
 # which other factors are on). Each 32-bit word gives two 16-bit draws.
 _WORDS = {"camera": 4, "light": 8, "body": 4, "target": 2, "floor": 2,
           "background": 2, "reflectance": 2}
+# Words added to a factor later: name -> (factor, words). They are the fold-ins
+# j = _WORDS[factor] / 2, … of that factor (after its original ones; extras of one
+# factor follow each other in this order), kept apart from `_WORDS` so that
+# the draws that existed before keep their values (`_k16` interleaves a stream's
+# words, so appending to it would move them). Never reorder or resize an entry.
+_EXTRA_WORDS = {"light_colour": ("light", 4)}
 FACTOR_INDEX = {f: i for i, f in enumerate(FACTORS)}
 
 
@@ -65,6 +74,11 @@ class VisualParams:
     light_pos: float32 (N, 3) position of the domain's light in its body frame.
     light_dir: float32 (N, 3) direction the light points (not normalised;
       normalised in float64 when applied).
+    light_diffuse, light_specular: float32 (N, 3) RGB diffuse and specular
+      intensity of that light (GL light colours, unitless, not clipped: the
+      original's finger draws reach 1.12 and −.02). The model's own values
+      unless the light factor varies and the domain's ranges give a colour
+      (finger only, `ranges.DomainRanges.light_diffuse`).
     headlight_ambient, headlight_diffuse, headlight_specular: float32 (N, 3).
     body_rgba: float32 (N, 4) colour of the agent's body ("self" materials).
     effector_rgba: float32 (N, 4) colour of its effectors ("effector" materials).
@@ -80,6 +94,8 @@ class VisualParams:
   cam_rot: jax.Array
   light_pos: jax.Array
   light_dir: jax.Array
+  light_diffuse: jax.Array
+  light_specular: jax.Array
   headlight_ambient: jax.Array
   headlight_diffuse: jax.Array
   headlight_specular: jax.Array
@@ -133,6 +149,8 @@ def defaults(domain: str) -> dict[str, np.ndarray]:
   return {
       "cam_pos": f32(m.cam_pos[cam]), "cam_rot": np.zeros(3, np.float32),
       "light_pos": f32(m.light_pos[light]), "light_dir": f32(m.light_dir[light]),
+      "light_diffuse": f32(m.light_diffuse[light]),
+      "light_specular": f32(m.light_specular[light]),
       "headlight_ambient": f32(hl.ambient), "headlight_diffuse": f32(hl.diffuse),
       "headlight_specular": f32(hl.specular),
       "body_rgba": f32(mat(r.body)), "effector_rgba": f32(mat(r.effector)),
@@ -179,6 +197,12 @@ def _domain_consts(domain: str) -> dict[str, np.ndarray]:
   c["light_lo"], c["light_step"] = _affine(r.light_pos if moves else [(0, 0)] * 3)
   c["light_moves"] = np.asarray(moves)
   c["light_aim"] = np.asarray(r.light_aim, np.float32)
+  coloured = r.light_diffuse is not None
+  for name in ("diffuse", "specular"):
+    (lo, hi), jit = getattr(r, f"light_{name}") if coloured else ((0, 0), 0)
+    c[f"l{name}_lo"], c[f"l{name}_step"] = _affine([(lo, hi)])
+    c[f"l{name}_jlo"], c[f"l{name}_jstep"] = _affine([(-jit, jit)] * 3)
+  c["light_coloured"] = np.asarray(coloured)
   return c
 
 
@@ -190,18 +214,20 @@ def _streams(seed: jax.Array) -> dict[str, jax.Array]:
   or shift each other's draws and are statistically independent. All pairs are
   one vectorised `fold_in` (fast to compile and to run); the key
   implementation is fixed explicitly, independent of JAX's global PRNG config.
+  Keys: the factors, each with its `_WORDS` words (j = 0, 1, …), and the
+  `_EXTRA_WORDS` names, each with the factor's next fold-ins.
   """
   key = jax.random.key(seed, impl="threefry2x32")
-  data = np.array([FACTOR_IDS[f] * 256 + j for f in FACTORS
-                   for j in range(_WORDS[f] // 2)], np.uint32)
-  pairs = jax.random.key_data(
-      jax.vmap(jax.random.fold_in, (None, 0))(key, jnp.asarray(data)))
-  out, start = {}, 0
-  for f in FACTORS:
-    n = _WORDS[f] // 2
-    out[f] = pairs[start:start + n].reshape(-1)
-    start += n
-  return out
+  spans, data, nxt = [], [], dict.fromkeys(FACTORS, 0)   # nxt: next j per factor
+  for name, (f, words) in [*((f, (f, _WORDS[f])) for f in FACTORS),
+                           *_EXTRA_WORDS.items()]:
+    n = words // 2
+    spans.append((name, len(data), n))
+    data += [FACTOR_IDS[f] * 256 + nxt[f] + j for j in range(n)]
+    nxt[f] += n
+  pairs = jax.random.key_data(jax.vmap(jax.random.fold_in, (None, 0))(
+      key, jnp.asarray(np.array(data, np.uint32))))
+  return {name: pairs[start:start + n].reshape(-1) for name, start, n in spans}
 
 
 def _k16(words: jax.Array) -> jax.Array:
@@ -212,7 +238,8 @@ def _k16(words: jax.Array) -> jax.Array:
 
 _FIELD_FACTOR = {
     "cam_pos": "camera", "cam_rot": "camera", "light_pos": "light",
-    "light_dir": "light", "headlight_ambient": "light",
+    "light_dir": "light", "light_diffuse": "light", "light_specular": "light",
+    "headlight_ambient": "light",
     "headlight_diffuse": "light", "headlight_specular": "light",
     "body_rgba": "body", "effector_rgba": "body", "target_rgba": "target",
     "floor_id": "floor", "background_id": "background",
@@ -240,6 +267,13 @@ def _draw_one(seed: jax.Array, mask: jax.Array, c: dict[str, jax.Array],
     base = _uniform(k[3 + j:4 + j], blo, bstep)
     jitter = _uniform(k[6 + 3 * j:9 + 3 * j], jlo, jstep)
     out[f"headlight_{name}"] = jnp.clip(base + jitter, 0.0, 1.0)
+  # The moved light's colour (finger): scalar base + per-channel jitter, unclipped.
+  k = _k16(words["light_colour"])
+  for j, name in enumerate(("diffuse", "specular")):
+    base = _uniform(k[j:j + 1], c[f"l{name}_lo"], c[f"l{name}_step"])
+    jitter = _uniform(k[2 + 3 * j:5 + 3 * j], c[f"l{name}_jlo"], c[f"l{name}_jstep"])
+    out[f"light_{name}"] = jnp.where(c["light_coloured"], base + jitter,
+                                     c[f"default_light_{name}"])
 
   k = _k16(words["body"])
   out["body_rgba"] = _uniform(k[0:4], *_RGBA)

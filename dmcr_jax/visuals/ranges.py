@@ -14,6 +14,14 @@ Colours come from the full RGB cube with alpha in [0.75, 1] (the original's
 distribution); the floor's reflectance is uniform in [0, 0.5] (dm_control's
 default is 0.2); headlight channels are a shared base plus a per-channel jitter.
 
+The light factor also changes the colour of the domain's moved light where the
+original did: only finger (the original's `finger.get_model` draws the light's
+diffuse as a scalar U(.5, 1.1) plus a per-channel U(−.02, .02) and its specular as
+a scalar U(0, 1.2) plus a per-channel U(−.02, .02), neither clipped; no other
+domain's `get_model` touches its light's colour). `light_diffuse` and
+`light_specular` hold those (base interval, jitter half-width) pairs, None where
+the light keeps dm_control's colour.
+
 The camera factor draws the original's camera pose, while seed 0 (and every
 look with the camera factor off) keeps dm_control's. The two agree in every
 domain but ball_in_cup and pendulum, whose MJCF the original edited (paper,
@@ -50,6 +58,10 @@ REFLECTANCE: Interval = (0.0, 0.5)
 HEADLIGHT_AMBIENT: tuple[Interval, float] = ((0.1, 0.8), 0.05)    # default 0.4
 HEADLIGHT_DIFFUSE: tuple[Interval, float] = ((0.4, 0.9), 0.1)     # default 0.8
 HEADLIGHT_SPECULAR: tuple[Interval, float] = ((0.05, 0.3), 0.02)  # default 0.1
+# Finger's light (original DMCR): base ~ U(lo, hi), plus U(−j, j) per channel, not
+# clipped (diffuse up to 1.12, specular down to −.02).
+FINGER_LIGHT_DIFFUSE: tuple[Interval, float] = ((0.5, 1.1), 0.02)   # default 0.6
+FINGER_LIGHT_SPECULAR: tuple[Interval, float] = ((0.0, 1.2), 0.02)  # default 0.3
 
 _NO_ROT: Vec3Ranges = ((0.0, 0.0), (0.0, 0.0), (0.0, 0.0))
 
@@ -70,6 +82,9 @@ class DomainRanges:
     body: materials coloured by the `body` factor (first colour).
     effector: materials coloured with the body factor's second colour.
     target: materials coloured by the `target` factor.
+    light_diffuse, light_specular: (base interval, per-channel jitter half-width)
+      of the moved light's diffuse and specular colour (RGB, unitless GL light
+      intensities; not clipped), or None: the light keeps the model's colour.
   """
   camera: str
   cam_pos: Vec3Ranges
@@ -82,6 +97,8 @@ class DomainRanges:
   body: tuple[str, ...] = ("self", "self_default")
   effector: tuple[str, ...] = ("effector", "effector_default")
   target: tuple[str, ...] = ("target", "target_default")
+  light_diffuse: tuple[Interval, float] | None = None
+  light_specular: tuple[Interval, float] | None = None
 
 
 def _pm(a: float) -> Interval:
@@ -116,7 +133,8 @@ DOMAIN_RANGES: dict[str, DomainRanges] = {
     "finger": DomainRanges(
         camera="cam0", cam_pos=(_pm(.02), (-1.01, -.99), (.7, 1.0)), cam_rot=_NO_ROT,
         light="light", light_pos=(_pm(.8), _pm(.8), (1, 3)), light_aim=(0, 0, 0),
-        floor="ground", floor_tile=1.0),
+        floor="ground", floor_tile=1.0,
+        light_diffuse=FINGER_LIGHT_DIFFUSE, light_specular=FINGER_LIGHT_SPECULAR),
     "fish": DomainRanges(
         camera="tracking_top", cam_pos=(_pm(.05), _pm(.05), (.8, 1.2)), cam_rot=_NO_ROT,
         light="light", light_pos=(_pm(.3), _pm(.3), (0, 1)), light_aim=(0, 0, -.5),

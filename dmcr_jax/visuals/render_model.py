@@ -13,7 +13,8 @@ Switching looks is cheap and never re-uploads a texture:
 * floor: the floor geom's `geom_matid` selects one of the bank's materials
   (materials keep their texture and tiling in the GL context);
 * colours, reflectance, headlight, light and camera: plain writes into
-  `mat_rgba`, `mat_reflectance`, `vis.headlight`, `light_pos/dir(+0)` and
+  `mat_rgba`, `mat_reflectance`, `vis.headlight`, `light_pos/dir(+0)`,
+  `light_diffuse/specular` and
   `cam_pos/quat` and their derived `cam_pos0/cam_poscom0/cam_mat0` (which
   MuJoCo's tracking cameras and lights read; we compute them as `mj_setConst`
   would, from the body poses at qpos0);
@@ -115,7 +116,8 @@ def with_default_look(rm: RenderModel) -> RenderModel:
   hl.ambient[:], hl.diffuse[:], hl.specular[:] = d["headlight"]
   for name in ("cam_pos", "cam_quat", "cam_pos0", "cam_poscom0", "cam_mat0"):
     getattr(m, name)[c] = d[name]
-  for name in ("light_pos", "light_dir", "light_pos0", "light_poscom0", "light_dir0"):
+  for name in ("light_pos", "light_dir", "light_pos0", "light_poscom0", "light_dir0",
+               "light_diffuse", "light_specular"):
     getattr(m, name)[l] = d[name]
   return out
 
@@ -234,6 +236,8 @@ def build_render_model(domain: str, bank: TextureBank | None = None) -> RenderMo
       "light_pos0": m.light_pos0[light].copy(),
       "light_poscom0": m.light_poscom0[light].copy(),
       "light_dir0": m.light_dir0[light].copy(),
+      "light_diffuse": m.light_diffuse[light].copy(),
+      "light_specular": m.light_specular[light].copy(),
   }
   rm = RenderModel(
       domain=domain, model=m, bank=bank, cam_id=cam, light_id=light,
@@ -313,6 +317,8 @@ class Looks:
   light_pos0: np.ndarray        # float64 (N, 3)
   light_poscom0: np.ndarray     # float64 (N, 3)
   light_dir0: np.ndarray        # float64 (N, 3)
+  light_diffuse: np.ndarray     # float32 (N, 3): the light's diffuse RGB
+  light_specular: np.ndarray    # float32 (N, 3): the light's specular RGB
   skybox_tex: np.ndarray        # int (N,): texture id to draw as the skybox
 
   def __len__(self) -> int:
@@ -391,6 +397,8 @@ def prepare(rm: RenderModel, params: VisualParams) -> Looks:
   lxpos = xpos + _rotate(np.broadcast_to(xquat, (n, 4)), lpos)
   lxdir = _rotate(np.broadcast_to(xquat, (n, 4)), ldir)
   lm = lmoves[:, None]
+  # Light colour (finger): the drawn values as they are (float32, as MuJoCo stores).
+  lcol = (on("light") & (R.DOMAIN_RANGES[rm.domain].light_diffuse is not None))[:, None]
   sky = np.where(on("background") & (bid >= 0), rm.bg_tex0 + bid, rm.sky_tex)
   return Looks(
       body_rgba=body.astype(np.float32), effector_rgba=eff.astype(np.float32),
@@ -403,6 +411,9 @@ def prepare(rm: RenderModel, params: VisualParams) -> Looks:
       light_pos0=np.where(lm, lxpos - xpos, d["light_pos0"]),
       light_poscom0=np.where(lm, lxpos - com, d["light_poscom0"]),
       light_dir0=np.where(lm, lxdir, d["light_dir0"]),
+      light_diffuse=np.where(lcol, P["light_diffuse"], d["light_diffuse"]).astype(np.float32),
+      light_specular=np.where(lcol, P["light_specular"],
+                              d["light_specular"]).astype(np.float32),
       skybox_tex=sky)
 
 
@@ -467,6 +478,8 @@ def apply(rm: RenderModel, looks: Looks | VisualParams, index: int = 0,
   m.light_pos0[l] = looks.light_pos0[i]
   m.light_poscom0[l] = looks.light_poscom0[i]
   m.light_dir0[l] = looks.light_dir0[i]
+  m.light_diffuse[l] = looks.light_diffuse[i]
+  m.light_specular[l] = looks.light_specular[i]
   tex = int(looks.skybox_tex[i])
   if context is not None:
     set_skybox(rm, context, tex)
