@@ -226,6 +226,7 @@ def _with_default_colour(rm, looks):
       k: np.broadcast_to(rm.dflt[k], (n, 3)).astype(np.float32) for k in COLOUR}})
 
 
+@pytest.mark.slow
 def test_both_renderers_draw_the_colour(bank):
   """MuJoCo's renderer and the ray caster agree on finger looks whose light colour
   varies, and both change with the colour alone (same light position)."""
@@ -265,6 +266,7 @@ def test_both_renderers_draw_the_colour(bank):
   assert (out["varied", 1][0] - out["plain", 1][0]).mean() < -0.5
 
 
+@pytest.mark.slow
 def test_parity_with_mujoco_all_factors(bank):
   """Finger with every factor on (light colour included): silhouettes and pixels
   as the parity table's finger row."""
