@@ -130,9 +130,9 @@ def seed_grid(demo: Demo, path: str) -> np.ndarray:
 def full_size_commands(task: str) -> list[str]:
   """The commands of the paper-sized run of `task` (a GPU machine)."""
   run = f"runs/{task}-drq"
-  return [f"dmcr-train --task {task} --steps 50000 --num-envs 16 --dtype bfloat16 --out {run}",
+  return [f"dmcr-train --task {task} --steps 50000 --dtype bfloat16 --out {run}",
           f"dmcr-evaluate {run}",
-          f"dmcr-train --task {task} --visual-seeds levels:10 --num-envs 16 --dtype bfloat16 "
+          f"dmcr-train --task {task} --visual-seeds levels:10 --dtype bfloat16 "
           f"--out {run}-levels10   # few-shot looks, as this demo"]
 
 
