@@ -53,9 +53,9 @@ def compile_faster() -> None:
   is set (then the suite compiles as a user's program does).
 
   XLA:CPU then emits its fused elementwise loops with the older LLVM IR emitters
-  instead of the MLIR fusion emitters: the MJX physics, the ray caster and the
-  learner compile in a third to a half less time (humanoid's step 23 s -> 15 s on
-  2 cores) and run as fast. Results may differ from the default's in the last bits
+  instead of the MLIR fusion emitters, which compile the MJX physics, the ray
+  caster and the learner in markedly less time and run them as fast (measured in
+  the commit that added this). Results may differ from the default's in the last bits
   of float32 (another instruction order, e.g. where a multiply-add is fused); every
   comparison in the suite is either within one build (both sides compiled alike)
   or against a reference at a tolerance far above that. XLA aborts the process on
@@ -75,7 +75,7 @@ def collect_less() -> None:
   """Runs Python's cyclic garbage collector less often. Tracing an MJX step makes
   hundreds of thousands of objects that live until the trace ends; at the default
   thresholds the collector scans them (and the suite's other live objects) again
-  and again, a fifth to a third of a trace's time. Freed cycles wait longer."""
+  and again, a large share of a trace's time. Freed cycles wait longer."""
   gc.set_threshold(100_000, 20, 10)
 
 
