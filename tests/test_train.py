@@ -219,7 +219,8 @@ def test_host_and_device_drivers_train_identical_agents(tmp_path):
   for physics in ("cpu", "device"):   # on a CPU: host driver, then device driver
     cfg = loop.TrainConfig(steps=24, num_envs=2, checkpoint_every=0, renderer="jax",
                            physics=physics, chunk_steps=4, out_dir=str(tmp_path / physics),
-                           **{k: v for k, v in CFG.items() if k not in ("quality", "workers")})
+                           **{k: v for k, v in CFG.items()
+                              if k not in ("quality", "workers", "num_envs")})
     loop.train(cfg, progress=False)
     _, agents[physics], step = loop.load_run(cfg.out_dir)
     assert step == 24 and int(agents[physics].step[0]) > 0  # updates ran
@@ -246,7 +247,7 @@ def test_env_groups_step_in_turn_and_store_each_groups_own_frames(tmp_path, monk
     return store(learner, obs, first, action, reward, **kw)
 
   monkeypatch.setattr(train_step, "store_jit", recording_store)
-  base = {k: v for k, v in CFG.items() if k not in ("quality", "workers")}
+  base = {k: v for k, v in CFG.items() if k not in ("quality", "workers", "num_envs")}
   updates = {}
   for groups in (1, 2):
     stores.clear()
@@ -265,7 +266,7 @@ def test_env_groups_step_in_turn_and_store_each_groups_own_frames(tmp_path, monk
       if not first:
         np.testing.assert_array_equal(obs[..., :-3], prev[..., 3:])
   with pytest.raises(ValueError, match="env_groups \\(3\\) must divide num_envs \\(2\\)"):
-    loop.check_config(loop.TrainConfig(num_envs=2, env_groups=3, **CFG))
+    loop.check_config(loop.TrainConfig(env_groups=3, **{**CFG, "num_envs": 2}))
   with pytest.raises(ValueError, match="env_groups > 1 needs the host driver"):
     loop.check_config(loop.TrainConfig(num_envs=2, env_groups=2, renderer="jax",
                                        physics="device", **base))
