@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The paper-table runs (issue 27) on every local GPU: train each job at the paper's length and
-# action repeat, then evaluate it with the full protocol, ray caster first (minutes), then the pool
-# (the exact look), and export its agents. One job per GPU at a time; job i runs on GPU i mod G.
+# action repeat, export its agents, then evaluate it with the full protocol with both renderers side
+# by side (the ray caster and the pool's exact look). One job per GPU at a time; job i runs on GPU
+# i mod G.
 #
 #   benchmarks/paper_runs.sh OUT_DIR JOB [JOB ...]      JOB = task:aug[:seeds], e.g.
 #   benchmarks/paper_runs.sh runs/paper walker-walk:drq cheetah-run:drq hopper-stand:drq finger-spin:drq
@@ -48,11 +49,19 @@ run_job() {  # GPU JOB
   fi
   [ -f "$dir/agents/config.json" ] || python3 -m dmcr_jax.benchmarks.export_params export \
       "$dir/run" "$dir/agents" > "$dir/export.log" 2>&1
-  [ -f "$dir/eval_jax/eval.json" ] || $on python3 -m dmcr_jax.train.evaluate "$dir/run" \
-      --renderer jax --no-progress --out "$dir/eval_jax" ${EVAL_ARGS:-} > "$dir/eval_jax.log" 2>&1
-  [ -n "${SKIP_POOL:-}" ] || [ -f "$dir/eval_pool/eval.json" ] || $on python3 -m dmcr_jax.train.evaluate \
+  # Both evaluations at once on the job's GPU, neither preallocating its memory: the ray
+  # caster's is GPU compute, the pool's mostly waits on its render workers' frames.
+  local ev="$on XLA_PYTHON_CLIENT_PREALLOCATE=false"
+  [ -f "$dir/eval_jax/eval.json" ] || $ev python3 -m dmcr_jax.train.evaluate "$dir/run" \
+      --renderer jax --no-progress --out "$dir/eval_jax" ${EVAL_ARGS:-} > "$dir/eval_jax.log" 2>&1 &
+  [ -n "${SKIP_POOL:-}" ] || [ -f "$dir/eval_pool/eval.json" ] || $ev python3 -m dmcr_jax.train.evaluate \
       "$dir/run" --workers "$WORKERS" --no-progress --out "$dir/eval_pool" ${EVAL_ARGS:-} \
-      > "$dir/eval_pool.log" 2>&1
+      > "$dir/eval_pool.log" 2>&1 &
+  wait
+  for r in jax pool; do
+    [ "$r" = pool ] && [ -n "${SKIP_POOL:-}" ] && continue
+    [ -f "$dir/eval_$r/eval.json" ] || { echo "$2: $r evaluation failed, see $dir/eval_$r.log" >&2; return 1; }
+  done
   echo "$2: done ($dir)"
 }
 
