@@ -3,7 +3,8 @@
 `suite_xml(domain)` is dm_control's MJCF and assets for a suite domain,
 `compile_suite_model` compiles a fresh `mujoco.MjModel` from them (for callers
 that edit it) and `suite_model` the same compiled once and cached (read it, never
-edit it). `obj_id` and its shorthands look a named element up in a
+edit it); `suite_compile_quiet` compiles without the deprecation warning the
+pinned MuJoCo prints for dm_control's own MJCF. `obj_id` and its shorthands look a named element up in a
 `mujoco.MjModel` or an `mjx.Model` and raise a ValueError naming the element
 when it is absent; `find_id` returns −1 instead. `field_id` looks up the element
 of a model field (``"geom_pos"`` → the geom), as the task variables
@@ -13,8 +14,11 @@ of a model field (``"geom_pos"`` → the geom), as the task variables
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import importlib
+import logging
+import warnings
 
 import mujoco
 import numpy as np
@@ -34,9 +38,34 @@ def suite_xml(domain: str) -> tuple[str, dict[str, bytes]]:
   return (xml.decode() if isinstance(xml, bytes) else xml), dict(assets)
 
 
+_SETTOTALMASS = "compiler attribute 'settotalmass' is deprecated"
+
+
+def _not_settotalmass(record: logging.LogRecord) -> bool:
+  return _SETTOTALMASS not in record.getMessage()
+
+
+@contextlib.contextmanager
+def suite_compile_quiet():
+  """Context for compiling a suite model: drops MuJoCo's deprecation warning of
+  the `settotalmass` compiler attribute (dm_control's cheetah sets it; the pinned
+  MuJoCo still applies it, and a user cannot act on it). MuJoCo reports it as a
+  Python warning, or on absl's log once dm_control has installed its warning
+  callback; other warnings pass."""
+  absl_log = logging.getLogger("absl")
+  absl_log.addFilter(_not_settotalmass)
+  try:
+    with warnings.catch_warnings():
+      warnings.filterwarnings("ignore", message=_SETTOTALMASS)
+      yield
+  finally:
+    absl_log.removeFilter(_not_settotalmass)
+
+
 def compile_suite_model(domain: str) -> mujoco.MjModel:
   """A freshly compiled dm_control suite model for `domain`, the caller's to edit."""
-  return mujoco.MjModel.from_xml_string(*suite_xml(domain))
+  with suite_compile_quiet():
+    return mujoco.MjModel.from_xml_string(*suite_xml(domain))
 
 
 @functools.cache

@@ -46,7 +46,7 @@ from typing import Any, Mapping
 import mujoco
 import numpy as np
 
-from dmcr_jax.models.names import FIELD_OBJECTS, obj_id, suite_model, suite_xml
+from dmcr_jax.models.names import FIELD_OBJECTS, obj_id, suite_compile_quiet, suite_model, suite_xml
 from dmcr_jax.visuals import ranges as R
 from dmcr_jax.visuals.factors import check_domain
 from dmcr_jax.visuals.params import FACTOR_INDEX, VisualParams, sample
@@ -159,7 +159,8 @@ def _compile(domain: str, bank: TextureBank) -> mujoco.MjModel:
   for k in range(bank.num_backgrounds):
     spec.add_texture(name=f"dmcr_sky_{k}", type=mujoco.mjtTexture.mjTEXTURE_CUBE,
                      width=W, height=6 * W, **flat)
-  m = spec.compile()
+  with suite_compile_quiet():
+    m = spec.compile()
   # Fill the texture data in one pass per texture (faster than passing bytes).
   t0 = base.ntex
   for k in range(bank.num_floors):
