@@ -47,7 +47,7 @@ run_job() {  # GPU JOB
       $( [ -d "$dir/run/checkpoints" ] && echo --resume ) ${TRAIN_ARGS:-} > "$dir/train.log" 2>&1 \
       || { echo "$2: training failed, see $dir/train.log" >&2; return 1; }
   fi
-  [ -f "$dir/agents/config.json" ] || python3 -m dmcr_jax.benchmarks.export_params export \
+  [ -f "$dir/agents/config.json" ] || $on XLA_PYTHON_CLIENT_PREALLOCATE=false python3 -m dmcr_jax.benchmarks.export_params export \
       "$dir/run" "$dir/agents" > "$dir/export.log" 2>&1
   # Both evaluations at once on the job's GPU, neither preallocating its memory: the ray
   # caster's is GPU compute, the pool's mostly waits on its render workers' frames.

@@ -94,6 +94,18 @@ def test_cache_build_and_reload(tmp_path, monkeypatch):
   assert T.load_bank(progress=False) is again          # in-process cache
 
 
+
+def test_progress_to_a_log_file_is_one_line(monkeypatch, capsys):
+  """With stderr not a terminal (a log file), the build says so in one line, not in
+  a progress bar's carriage-return redraws."""
+  monkeypatch.setattr(T, "NUM_FLOORS", 2)
+  monkeypatch.setattr(T, "NUM_BACKGROUNDS", 1)
+  T.build_procedural(workers=1, progress=True)
+  err = capsys.readouterr().err
+  assert "\r" not in err and err.count("building texture bank") == 1, err
+  T.build_procedural(workers=1, progress=False)
+  assert capsys.readouterr().err == ""
+
 def _write_images(folder, names, seed):
   import imageio.v3 as iio
   folder.mkdir()

@@ -1036,7 +1036,8 @@ def build_procedural(workers: int | None = None, progress: bool = True
 
   Args:
     workers: processes to use (default: the CPU count; 1 runs in-process).
-    progress: show a tqdm progress bar.
+    progress: show a tqdm progress bar (one line instead when stderr is not a
+      terminal).
 
   Returns:
     (floors (NUM_FLOORS, S, S, 3), backgrounds (NUM_BACKGROUNDS, 6, W, W, 3)).
@@ -1050,8 +1051,11 @@ def build_procedural(workers: int | None = None, progress: bool = True
   workers = max(1, min(workers or os.cpu_count() or 1, len(jobs)))
   floors = np.empty((nf, FLOOR_SIZE, FLOOR_SIZE, 3), np.uint8)
   bgs = np.empty((nb, 6, BACKGROUND_SIZE, BACKGROUND_SIZE, 3), np.uint8)
-  bar = tqdm(total=len(jobs), desc="dmcr_jax: building texture bank (once)",
-             disable=not progress, unit="tex")
+  desc = "dmcr_jax: building texture bank (once)"
+  bar_on = progress and sys.stderr.isatty()
+  if progress and not bar_on:  # to a log file: one line instead of a bar's redraws
+    print(f"{desc} …", file=sys.stderr, flush=True)
+  bar = tqdm(total=len(jobs), desc=desc, disable=not bar_on, unit="tex")
   try:
     if workers == 1:
       for kind, i in jobs:
