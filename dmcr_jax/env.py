@@ -6,7 +6,7 @@ runs physics, the JAX ray caster (`visuals.jax_render`: close to MuJoCo's pixels
 not equal) and the frame stacks as one jitted call on the device
 (`dmcr_jax.jax_env`, whose pure functions a training loop can scan). Both share
 the arguments, spaces, visual seeds, auto-reset, observations and info described
-below (`_PixelEnvBase`); `workers`, `quality`, `gl` and `copy_obs` are the pool's,
+below (`_PixelEnvBase`); `workers`, `quality`, `gl`, `egl_devices` and `copy_obs` are the pool's,
 `shadows`, `reflection`, `render_chunk`, `render_kernel` and `obs_on_device` the
 JAX renderer's,
 and either refuses the other's. With "jax" a look is made on the device from its
@@ -89,7 +89,8 @@ from dmcr_jax.visuals import render_model as rmod
 from dmcr_jax.visuals.factors import check_vary
 from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, EnvRanges, SeedRange
 from dmcr_jax.visuals.params import check_seeds
-from dmcr_jax.visuals.render_pool import RenderPool, default_workers
+from dmcr_jax.visuals.render_pool import (RenderPool, check_egl_devices, check_gl, default_gl,
+                                          default_workers)
 
 # Action repeat of the paper's Table 4; other tasks take their domain's value and
 # domains the table does not list take 4 (PlaNet/DrQ's default).
@@ -202,7 +203,7 @@ def check_renderer_name(renderer: str) -> str:
   if renderer not in RENDERERS:
     raise ValueError(f"Unknown renderer {renderer!r}; valid: {', '.join(RENDERERS)}.")
   return renderer
-_POOL_ONLY = ("workers", "quality", "gl", "copy_obs")
+_POOL_ONLY = ("workers", "quality", "gl", "egl_devices", "copy_obs")
 PHYSICS_DEVICES = (None, "cpu")
 """What `make(physics_device=...)` accepts: JAX's default device, or the host CPU."""
 
@@ -499,11 +500,13 @@ class PixelVectorEnv(_PixelEnvBase):
                frame_stack: int = 3, image_size: int | tuple[int, int] = 84,
                camera: int | str = 0, seed: int = 0, *, workers: int | None = None,
                quality: str = "exact", gl: str | None = None, copy_obs: bool = True,
+               egl_devices: Sequence[int] | None = None,
                solver_iterations: int | None = None, ls_iterations: int | None = None,
                physics_device: str | None = None, physics_workers: int | None = None):
     self._pool = None
     if workers is not None:
       positive_int("workers", workers)
+    check_egl_devices(egl_devices, check_gl(default_gl() if gl is None else gl))
     super().__init__(task, num_envs, visual_seeds, vary, frame_skip, frame_stack,
                      image_size, camera, seed, solver_iterations, ls_iterations,
                      physics_device, physics_workers)
@@ -511,7 +514,8 @@ class PixelVectorEnv(_PixelEnvBase):
     self.copy_obs = bool(copy_obs)
     self._pool = RenderPool(task, max_batch=n, height=self.height, width=self.width,
                             camera=camera, workers=min(n, workers or default_workers()),
-                            quality=quality, gl=gl, frame_stack=self.frame_stack)
+                            quality=quality, gl=gl, frame_stack=self.frame_stack,
+                            egl_devices=egl_devices)
     self._use_seeds()
     self._looks = None
     self._look_seeds = None
@@ -740,7 +744,8 @@ def make(task: str, num_envs: int = 1, visual_seeds: Any = 0,
       frames and stacks in one jitted call; close to MuJoCo's pixels, not equal).
     **kwargs: for "pool": `workers`, `quality` ("exact", "fast", "fastest"), `gl`
       ("egl", the default, or "osmesa", which needs the OSMesa library; no
-      environment variable needed) for the `RenderPool`, `copy_obs` (default True; False
+      environment variable needed), `egl_devices` (EGL device indices the
+      workers are spread over; None: MuJoCo's default) for the `RenderPool`, `copy_obs` (default True; False
       returns views of shared memory, see the module docstring). For "jax"
       (which has no workers and no quality presets): `shadows`, `reflection`
       (default True: MuJoCo's picture), `render_chunk` (envs per render chunk,

@@ -44,3 +44,10 @@ class ImportEnvRenderer:
 
   def __call__(self, inputs, out):
     out[:] = float(IMPORT_ENV == "set")
+
+
+class EnvValueRenderer:
+  """Writes float(DMCR_POOL_TEST_VAR) as the worker sees it (per-worker environments)."""
+
+  def __call__(self, inputs, out):
+    out[:] = float(os.environ["DMCR_POOL_TEST_VAR"])

@@ -188,6 +188,8 @@ def test_set_state_restarts_the_stacks_from_that_state(envs):
     (dict(renderer="jax", num_envs=2, visual_seeds=[levels(2), 0]),
      "mixes SeedRanges and fixed seeds"),
     (dict(render_kernel=True), "render_kernel apply only to renderer='jax'"),
+    (dict(renderer="jax", egl_devices=[1]), "egl_devices apply only to renderer='pool'"),
+    (dict(egl_devices=[-1]), "EGL device indices"),
     pytest.param(dict(renderer="jax", render_kernel=True), "fused render kernel needs a GPU",
                  marks=pytest.mark.skipif(jax.default_backend() == "gpu", reason="a GPU")),
 ])
@@ -200,6 +202,8 @@ def test_make_rejects_bad_renderer_arguments(kwargs, match):
     (["--renderer", "gl"], "Unknown renderer 'gl'; valid: pool, jax"),
     (["--renderer", "jax", "--quality", "fast"], "apply only to renderer 'pool'"),
     (["--renderer", "jax", "--chunk-steps", "0"], "chunk_steps must be a positive int"),
+    (["--renderer", "jax", "--egl-devices", "1"], "apply only to renderer 'pool'"),
+    (["--egl-devices", "1,a"], "want EGL device indices"),
 ])
 def test_train_rejects_bad_renderer_arguments(argv, match, capsys):
   with pytest.raises(SystemExit):

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from dmcr_jax.visuals import render_model as rmod
-from dmcr_jax.visuals.render_pool import RenderPool
+from dmcr_jax.visuals.pool import WorkerError
+from dmcr_jax.visuals.render_pool import RenderPool, check_egl_devices
 
 pytestmark = pytest.mark.xdist_group("render_pool")
 
@@ -86,9 +87,20 @@ def test_bad_inputs(pool):
     RenderPool("reacher-easy", max_batch=1, quality="ultra")
   with pytest.raises(ValueError, match="walker-walk"):
     RenderPool("walker-fly", max_batch=1)
+  with pytest.raises(ValueError, match="EGL device indices"):
+    RenderPool("reacher-easy", max_batch=1, egl_devices=[-1])
+  with pytest.raises(ValueError, match="gl='egl'"):
+    check_egl_devices((0,), "osmesa")
   # The pool still works after bad calls.
   assert pool.render(qpos, looks, var).shape == (3, 84, 84, 3)
 
+
+
+def test_egl_devices_reach_each_workers_gl_setup():
+  # MuJoCo's EGL setup reads MUJOCO_EGL_DEVICE_ID in the worker: an index past the
+  # machine's EGL devices fails there, naming the variable (no machine has 1000).
+  with pytest.raises(WorkerError, match="MUJOCO_EGL_DEVICE_ID"):
+    RenderPool("reacher-easy", max_batch=2, workers=1, gl="egl", egl_devices=[999])
 
 def test_close_leaves_nothing_behind():
   p = RenderPool("reacher-easy", max_batch=2, workers=2)
@@ -148,7 +160,8 @@ def test_gl_default_and_osmesa_check(monkeypatch):
 OSMESA_SCRIPT = r"""
 import os, sys
 import numpy as np
-from dmcr_jax.visuals.render_pool import RenderPool
+from dmcr_jax.visuals.pool import WorkerError
+from dmcr_jax.visuals.render_pool import RenderPool, check_egl_devices
 
 frames = {}
 for gl in ("osmesa", "egl"):

@@ -369,3 +369,22 @@ def test_train_command_reports_progress_every_2_percent(tmp_path, monkeypatch):
   monkeypatch.setattr(cli, "train", fake_train)
   cli.main(["--steps", "600", "--out", str(tmp_path / "run")])
   assert seen["cfg"].log_every == 12  # not the default 1,000 (> the run)
+
+
+def test_egl_devices_reach_the_env_and_survive_config_json(monkeypatch, tmp_path):
+  # --egl-devices places the render workers' frames (RenderPool's test checks that the
+  # workers get them); here: the config carries them to `make` and through config.json,
+  # and a resumed run may change them.
+  import dmcr_jax
+  cfg, _ = parse(["--task", "cartpole-balance", "--egl-devices", "1,2", "--workers", "3",
+                  "--out", str(tmp_path)])
+  assert cfg.egl_devices == (1, 2)
+  seen = {}
+  monkeypatch.setattr(dmcr_jax, "make", lambda *a, **k: seen.update(k))
+  loop.make_env(cfg)
+  assert (seen["egl_devices"], seen["workers"]) == ((1, 2), 3)
+  loop.save_config(cfg, str(tmp_path))
+  assert loop.load_config(str(tmp_path)) == cfg
+  resumed, _ = parse(["--task", "cartpole-balance", "--egl-devices", "0", "--resume",
+                      "--out", str(tmp_path)])
+  assert resumed.egl_devices == (0,)

@@ -154,6 +154,26 @@ def test_worker_env_is_set_before_the_worker_imports_anything():
     pool.close()
 
 
+
+def test_worker_env_adds_per_worker_variables_round_robin():
+  # RenderPool's egl_devices: worker w gets worker_env[w % len], over the shared env,
+  # and a replaced worker keeps its own.
+  pool = WorkerPool(fx.EnvValueRenderer, (), IN, OUT, max_batch=6, workers=3,
+                    env={"DMCR_POOL_TEST_VAR": "0"},
+                    worker_env=[{"DMCR_POOL_TEST_VAR": "10"}, {"DMCR_POOL_TEST_VAR": "20"}])
+  try:
+    assert "DMCR_POOL_TEST_VAR" not in os.environ
+    fill(pool, 6)
+    got = pool.run(6)[:, 0, 0]
+    want = np.concatenate([np.full(b - a, (10.0, 20.0, 10.0)[w])
+                           for w, (a, b) in enumerate(pool.slices(6))])
+    np.testing.assert_array_equal(got, want)
+    os.kill(pool.pids[1], signal.SIGKILL)
+    fill(pool, 6)
+    np.testing.assert_array_equal(pool.run(6)[:, 0, 0], want)
+  finally:
+    pool.close()
+
 def test_submit_returns_before_wait_and_wait_completes_the_call(tmp_path):
   with make_pool(tmp_path, workers=2)[0] as pool:
     n = 7

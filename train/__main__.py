@@ -44,7 +44,8 @@ import os
 import sys
 
 from dmcr_jax.train.loop import (AGENT_LOOPS, CPU_PHYSICS_MAX_ENVS, PHYSICS, RENDERERS, RESUMABLE,
-                        TrainConfig, check_config, load_config, progress_every, train)
+                        TrainConfig, check_config, egl_devices_arg, load_config, progress_every,
+                        train)
 from dmcr_jax.train.sac import ALGOS, COMPUTE_DTYPES, SACConfig
 
 
@@ -122,6 +123,10 @@ def build_parser() -> argparse.ArgumentParser:
                  help="render preset (--renderer pool)")
   p.add_argument("--workers", type=int, default=None,
                  help="render workers (--renderer pool; default: one per core, at most 16)")
+  p.add_argument("--egl-devices", type=egl_devices_arg, default=None, metavar="D[,D…]",
+                 help="EGL device indices the render workers are spread over (--renderer "
+                      "pool; default: MuJoCo's, MUJOCO_EGL_DEVICE_ID or the first), e.g. "
+                      "a GPU other than the learner's")
   p.add_argument("--dtype", default=s.compute_dtype,
                  metavar="{" + ",".join(COMPUTE_DTYPES) + "}",
                  help="compute dtype of the networks")
@@ -155,7 +160,8 @@ FLAG_FIELDS = {
     "chunk_steps": lambda c: c.chunk_steps, "physics": lambda c: c.physics,
     "env_groups": lambda c: c.env_groups, "physics_workers": lambda c: c.physics_workers,
     "quality": lambda c: c.quality,
-    "workers": lambda c: c.workers, "dtype": lambda c: c.sac.compute_dtype,
+    "workers": lambda c: c.workers, "egl_devices": lambda c: c.egl_devices,
+    "dtype": lambda c: c.sac.compute_dtype,
     "agent_loop": lambda c: c.agent_loop, "checkpoint_every": lambda c: c.checkpoint_every,
     "log_every": lambda c: c.log_every}
 """Each flag's value in a `TrainConfig` (for `--resume`'s comparison)."""
@@ -187,7 +193,8 @@ def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
                       action_repeat=a.action_repeat, visual_seeds=visual, vary=a.vary,
                       warmup_steps=a.warmup_steps, utd=a.utd,
                       buffer_capacity=a.buffer_capacity, image_size=a.image_size,
-                      quality=a.quality, workers=a.workers, log_every=a.log_every,
+                      quality=a.quality, workers=a.workers, egl_devices=a.egl_devices,
+                      log_every=a.log_every,
                       checkpoint_every=a.checkpoint_every, agent_loop=a.agent_loop,
                       renderer=a.renderer, chunk_steps=a.chunk_steps, physics=a.physics,
                       env_groups=a.env_groups, physics_workers=a.physics_workers,

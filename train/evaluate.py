@@ -108,9 +108,11 @@ class EvalConfig:
     conditions: the conditions to run; None = every one that applies.
     quality: render preset (the default, "exact", is dm_control's look).
     workers: render workers (None: one per core).
+    egl_devices: EGL device indices the render workers are spread over (None:
+      MuJoCo's default; `dmcr_jax.visuals.render_pool`).
     renderer: "pool" (MuJoCo's pixels from the CPU render pool, the reference) or
       "jax" (the JAX ray caster on the device: fast, close to MuJoCo's pixels but
-      not equal; `quality` and `workers` do not apply).
+      not equal; `quality`, `workers` and `egl_devices` do not apply).
   """
   visual_seeds: int = 100
   dynamics_seeds: int = 3
@@ -119,6 +121,7 @@ class EvalConfig:
   conditions: tuple[str, ...] | None = None
   quality: str = "exact"
   workers: int | None = None
+  egl_devices: tuple[int, ...] | None = None
   renderer: str = "pool"
 
 
@@ -131,7 +134,7 @@ def check_eval_config(cfg: EvalConfig, task: str) -> tuple[str, ...]:
     raise ValueError(f"train_episodes ({cfg.train_episodes}) must be at most "
                      f"visual_seeds · dynamics_seeds = {cfg.visual_seeds * cfg.dynamics_seeds}")
   check_quality(cfg.quality)
-  loop.check_renderer(cfg.renderer, cfg.quality, cfg.workers)
+  loop.check_renderer(cfg.renderer, cfg.quality, cfg.workers, cfg.egl_devices)
   if cfg.workers is not None:
     positive_int("workers", cfg.workers)
   valid = conditions_for(task)
@@ -147,7 +150,7 @@ def render_options(cfg: EvalConfig) -> dict:
   """`dmcr_jax.make`'s renderer keywords for `cfg`."""
   if cfg.renderer == "jax":
     return dict(renderer="jax")
-  return dict(quality=cfg.quality, workers=cfg.workers)
+  return dict(quality=cfg.quality, workers=cfg.workers, egl_devices=cfg.egl_devices)
 
 
 @jax.jit
@@ -706,6 +709,10 @@ def main(argv=None) -> None:
                  help="render preset (--renderer pool)")
   p.add_argument("--workers", type=int, default=None,
                  help="render workers (default: one per core, at most 16)")
+  p.add_argument("--egl-devices", type=loop.egl_devices_arg, default=None, metavar="D[,D…]",
+                 help="EGL device indices the render workers are spread over (default: "
+                      "MuJoCo's, MUJOCO_EGL_DEVICE_ID or the first); e.g. 0,1 draws the "
+                      "exact frames on two GPUs")
   p.add_argument("--renderer", default=d.renderer, metavar="{" + ",".join(loop.RENDERERS) + "}",
                  help="for the protocol: pool (MuJoCo's pixels) or jax (the JAX ray caster); "
                       "the extras render with the pool")
@@ -724,7 +731,7 @@ def main(argv=None) -> None:
   try:
     cfg = EvalConfig(visual_seeds=a.visual_seeds, dynamics_seeds=a.dynamics_seeds,
                      train_episodes=a.train_episodes, seed=a.seed, quality=a.quality,
-                     workers=a.workers, renderer=a.renderer,
+                     workers=a.workers, egl_devices=a.egl_devices, renderer=a.renderer,
                      conditions=tuple(a.conditions.split(",")) if a.conditions else None)
     try:
       agents = [int(x) for x in a.agents.split(",")] if a.agents else None
@@ -734,7 +741,7 @@ def main(argv=None) -> None:
     if a.skip_protocol:
       from dmcr_jax.visuals.tiled import check_quality
       check_quality(cfg.quality)
-      loop.check_renderer(cfg.renderer, cfg.quality, cfg.workers)
+      loop.check_renderer(cfg.renderer, cfg.quality, cfg.workers, cfg.egl_devices)
     else:
       check_eval_config(cfg, task)
   except (ValueError, FileNotFoundError) as e:

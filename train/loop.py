@@ -102,7 +102,8 @@ PHYSICS = ("auto", "cpu", "device")
 learner's device."""
 CPU_PHYSICS_MAX_ENVS = 64
 """The largest K·N whose physics "auto" steps on the host CPU."""
-RESUMABLE = ("steps", "checkpoint_every", "log_every", "workers", "physics_workers")
+RESUMABLE = ("steps", "checkpoint_every", "log_every", "workers", "physics_workers",
+             "egl_devices")
 """`TrainConfig` fields a resumed run may change (a larger `steps` extends it; the
 others change neither the agents nor the data); `out_dir` may name the folder
 differently. Every other field must equal the run's config.json."""
@@ -135,6 +136,9 @@ class TrainConfig:
       CURL `sac.curl_crop` + 16 (100: CURL renders larger and crops to 84).
     quality: render preset (`dmcr_jax.visuals.tiled.QUALITY`).
     workers: render workers (None: one per core).
+    egl_devices: EGL device indices the render workers are spread over (None:
+      MuJoCo's default; `dmcr_jax.visuals.render_pool`), e.g. GPUs other than the
+      learner's.
     log_every: steps between progress-bar and CSV metric updates.
     checkpoint_every: steps between checkpoints (0: only at the end / on a signal);
       checkpoints fall on the first vector step at or past each multiple.
@@ -168,6 +172,7 @@ class TrainConfig:
   frame_stack: int = 3
   quality: str = "exact"
   workers: int | None = None
+  egl_devices: tuple[int, ...] | None = None
   log_every: int = 1000
   checkpoint_every: int = 10_000
   out_dir: str = "runs/default"
@@ -288,13 +293,29 @@ def num_looks(look: int | SeedRange) -> int:
   return len(look) if isinstance(look, SeedRange) else 1
 
 
-def check_renderer(renderer: str, quality: str, workers: int | None) -> None:
-  """A ValueError for a renderer not in `RENDERERS`, or for the pool's options
-  (`quality` other than the default "exact", `workers`) given to the JAX one."""
+def check_renderer(renderer: str, quality: str, workers: int | None,
+                   egl_devices: tuple[int, ...] | None = None) -> None:
+  """A ValueError for a renderer not in `RENDERERS`, for the pool's options
+  (`quality` other than the default "exact", `workers`, `egl_devices`) given to
+  the JAX one, or for EGL devices that are not device indices."""
+  from dmcr_jax.visuals.render_pool import check_egl_devices, default_gl
   check_renderer_name(renderer)
-  if renderer == "jax" and (quality != "exact" or workers is not None):
-    raise ValueError("quality and workers apply only to renderer 'pool' (the JAX ray "
-                     "caster has no render workers and no quality presets)")
+  if renderer == "jax" and (quality != "exact" or workers is not None
+                            or egl_devices is not None):
+    raise ValueError("quality, workers and egl_devices apply only to renderer 'pool' "
+                     "(the JAX ray caster has no render workers and no quality presets)")
+  check_egl_devices(egl_devices, default_gl())
+
+
+def egl_devices_arg(text: str) -> tuple[int, ...]:
+  """A command line's `--egl-devices` ("1", "0,1") as a tuple of device indices
+  (an argparse type: a bad value is reported as the flag's error)."""
+  import argparse
+  parts = text.split(",")
+  if not all(p.strip().isdigit() for p in parts):
+    raise argparse.ArgumentTypeError(
+        f"want EGL device indices (ints >= 0) separated by commas, got {text!r}")
+  return tuple(int(p) for p in parts)
 
 
 def check_config(cfg: TrainConfig) -> None:
@@ -327,7 +348,7 @@ def check_config(cfg: TrainConfig) -> None:
   if cfg.buffer_capacity < cfg.num_envs * (cfg.frame_stack + 1):
     raise ValueError(f"buffer_capacity must be at least num_envs·(frame_stack + 1) = "
                      f"{cfg.num_envs * (cfg.frame_stack + 1)}")
-  check_renderer(cfg.renderer, cfg.quality, cfg.workers)
+  check_renderer(cfg.renderer, cfg.quality, cfg.workers, cfg.egl_devices)
   if cfg.renderer == "jax":
     positive_int("chunk_steps", cfg.chunk_steps)
   if cfg.physics not in PHYSICS:
@@ -466,6 +487,8 @@ def load_config(out_dir: str) -> TrainConfig:
   with open(path) as f:
     raw = json.load(f)
   raw["seeds"] = tuple(raw["seeds"])
+  if raw.get("egl_devices") is not None:
+    raw["egl_devices"] = tuple(raw["egl_devices"])
   raw["sac"] = sac.SACConfig(**raw["sac"])
   return TrainConfig(**raw)
 
@@ -802,7 +825,8 @@ def make_env(cfg: TrainConfig, num_envs: int | None = None, **options):
   import dmcr_jax
   k = len(cfg.agents())
   if cfg.renderer == "pool":
-    options = dict(quality=cfg.quality, workers=cfg.workers, **options)
+    options = dict(quality=cfg.quality, workers=cfg.workers, egl_devices=cfg.egl_devices,
+                   **options)
   n = num_envs or cfg.num_envs
   groups = parse_visual_seeds(cfg.visual_seeds)
   looks = (groups[0] if len(groups) == 1

@@ -174,6 +174,8 @@ class WorkerPool:
       building its renderer).
     max_retries: restarts per slice within one call before the call fails.
     env: environment variables set in each worker before the factory runs.
+    worker_env: per-worker additions to `env`: worker w (and its replacements)
+      also gets `worker_env[w % len(worker_env)]`.
     buffers: 1, or 2 for double-buffered outputs (see the module docstring).
     kind: what the workers do, for process names and error messages ("render",
       "physics").
@@ -184,7 +186,7 @@ class WorkerPool:
                workers: int, timeout: float = 120.0, start_timeout: float = 600.0,
                max_retries: int = 3,
                env: Mapping[str, str] | None = None, buffers: int = 1,
-               kind: str = "render"):
+               kind: str = "render", worker_env: Sequence[Mapping[str, str]] = ()):
     if int(workers) < 1:
       raise ValueError(f"workers must be >= 1, got {workers}")
     if int(max_batch) < 1:
@@ -200,6 +202,7 @@ class WorkerPool:
     self.start_timeout = float(start_timeout)
     self.max_retries = int(max_retries)
     self._env = dict(env or {})
+    self._worker_env = [dict(e) for e in worker_env]
     self._ctx = mp.get_context("spawn")
     self._segments: list[shared_memory.SharedMemory] = []
     self._procs: list[Any] = [None] * self.num_workers
@@ -232,11 +235,14 @@ class WorkerPool:
 
   def _start(self, w: int) -> None:
     parent, child = self._ctx.Pipe()
+    env = dict(self._env)
+    if self._worker_env:
+      env.update(self._worker_env[w % len(self._worker_env)])
     proc = self._ctx.Process(
         target=_worker_main, daemon=True, name=f"dmcr-{self.kind}-{w}",
         args=(child, self._factory, self._factory_args, self._in_names, self._in_specs,
-              self._out_names, self._out_spec, self.max_batch, self._env))
-    with _main_module_hidden(), _environ(self._env):
+              self._out_names, self._out_spec, self.max_batch, env))
+    with _main_module_hidden(), _environ(env):
       proc.start()
     child.close()
     self._procs[w], self._conns[w] = proc, parent

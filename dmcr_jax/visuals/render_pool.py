@@ -24,6 +24,12 @@ that is the usual default, with or without a GPU: Mesa's EGL renders on the
 CPU). `gl="osmesa"` needs the OSMesa library (Debian: libosmesa6); the workers
 start with `MUJOCO_GL`/`PYOPENGL_PLATFORM` set to the chosen backend, so no
 environment variable is needed in the caller's shell.
+
+EGL devices: by default every worker renders on MuJoCo's EGL device (the one
+`MUJOCO_EGL_DEVICE_ID` names, else the first that works). `egl_devices=(d0, d1,
+…)` spreads the workers over those EGL device indices, worker w on
+`egl_devices[w % len]`: on a machine with several GPUs, frames can be drawn on
+GPUs other than the one that trains, or on all of them at once.
 """
 
 from __future__ import annotations
@@ -51,6 +57,20 @@ def default_gl() -> str:
   """The GL backend workers use by default (see the module docstring)."""
   env = os.environ.get("MUJOCO_GL", "").lower()
   return env if env in GL_BACKENDS else "egl"
+
+
+def check_egl_devices(egl_devices, gl: str) -> tuple[int, ...] | None:
+  """`egl_devices` as a tuple of EGL device indices (ints ≥ 0, at least one), or
+  None; ValueError otherwise, or when `gl` is not "egl"."""
+  if egl_devices is None:
+    return None
+  devices = tuple(egl_devices)
+  if not devices or any(isinstance(d, bool) or not isinstance(d, (int, np.integer)) or d < 0
+                        for d in devices):
+    raise ValueError(f"egl_devices must be EGL device indices (ints >= 0), got {egl_devices!r}")
+  if gl != "egl":
+    raise ValueError(f"egl_devices apply only to gl='egl', not gl={gl!r}")
+  return tuple(int(d) for d in devices)
 
 
 def check_gl(gl: str) -> str:
@@ -169,6 +189,8 @@ class RenderPool(OwnsWorkerPool):
     timeout: seconds a worker may take for its slice before it is replaced.
     frame_stack: k > 1 makes `render` return stacked observations
       (N, H, W, 3k), built in the workers (see the module docstring).
+    egl_devices: EGL device indices the workers are spread over (see the module
+      docstring; None: MuJoCo's default device).
 
   Use as a context manager, or call `close()`.
   """
@@ -176,7 +198,8 @@ class RenderPool(OwnsWorkerPool):
   def __init__(self, task: str, max_batch: int, height: int = 84, width: int = 84,
                camera: int | str = 0, workers: int | None = None,
                quality: str = "exact", gl: str | None = None,
-               tiles: int | None = None, timeout: float = 120.0, frame_stack: int = 1):
+               tiles: int | None = None, timeout: float = 120.0, frame_stack: int = 1,
+               egl_devices=None):
     from dmcr_jax import models
     if "-" in task:
       domain, _ = models.split_name(task)
@@ -185,6 +208,7 @@ class RenderPool(OwnsWorkerPool):
       domain = rmod.check_domain(task)
       variables = ()
     gl = check_gl(default_gl() if gl is None else gl)
+    self.egl_devices = check_egl_devices(egl_devices, gl)
     check_quality(quality)
     if int(height) < 1 or int(width) < 1:
       raise ValueError(f"frame size must be positive, got {height}x{width}")
@@ -209,7 +233,8 @@ class RenderPool(OwnsWorkerPool):
         buffers=2 if self.frame_stack > 1 else 1,
         # Workers never compute with JAX: keep it off the GPU (it would reserve
         # most of the GPU's memory in every worker).
-        env={"MUJOCO_GL": gl, "PYOPENGL_PLATFORM": gl, "JAX_PLATFORMS": "cpu"})
+        env={"MUJOCO_GL": gl, "PYOPENGL_PLATFORM": gl, "JAX_PLATFORMS": "cpu"},
+        worker_env=[{"MUJOCO_EGL_DEVICE_ID": str(d)} for d in self.egl_devices or ()])
     self.max_batch = self._pool.max_batch
     self.num_workers = self._pool.num_workers
 
