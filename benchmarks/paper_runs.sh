@@ -13,8 +13,9 @@
 # and eval_pool/ (evaluate's eval.json, .md, .png), agents/ (export_params), and one log per step.
 # A step whose output exists is skipped, so calling it again after an interruption goes on where it
 # stopped. Environment: STEPS (override the paper's length, for a smoke test), TRAIN_ARGS and
-# EVAL_ARGS (extra flags), SKIP_POOL=1 (ray-caster evaluation only), WORKERS (render workers per job;
-# default: the cores divided among the GPUs, at most 16).
+# EVAL_ARGS (extra flags), POOL_EVAL_ARGS (the pool evaluation's alone, e.g. "--egl-devices 0,1"
+# to draw its frames on two GPUs), SKIP_POOL=1 (ray-caster evaluation only), WORKERS (render
+# workers per job; default: the cores divided among the GPUs, at most 16).
 set -uo pipefail
 [ $# -ge 2 ] || { sed -n 2,9p "$0"; exit 2; }
 OUT=$1; shift
@@ -55,7 +56,7 @@ run_job() {  # GPU JOB
   [ -f "$dir/eval_jax/eval.json" ] || $ev python3 -m dmcr_jax.train.evaluate "$dir/run" \
       --renderer jax --no-progress --out "$dir/eval_jax" ${EVAL_ARGS:-} > "$dir/eval_jax.log" 2>&1 &
   [ -n "${SKIP_POOL:-}" ] || [ -f "$dir/eval_pool/eval.json" ] || $ev python3 -m dmcr_jax.train.evaluate \
-      "$dir/run" --workers "$WORKERS" --no-progress --out "$dir/eval_pool" ${EVAL_ARGS:-} \
+      "$dir/run" --workers "$WORKERS" --no-progress --out "$dir/eval_pool" ${EVAL_ARGS:-} ${POOL_EVAL_ARGS:-} \
       > "$dir/eval_pool.log" 2>&1 &
   wait
   for r in jax pool; do
