@@ -319,7 +319,9 @@ def test_agents_sharded_over_two_devices_or_mapped_match_one_vmapped_call():
           np.asarray(step.act_jit(sharded, put(obs), spec=spec, mesh=mesh)[1]), atol=1e-3)
       print("ok")
       """)
-  env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
+  # The session's compile flags (conftest) and two forced host devices.
+  flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2"
+  env = dict(os.environ, XLA_FLAGS=flags.strip(),
              JAX_PLATFORMS="cpu")
   out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                        env=env, timeout=600)
