@@ -90,17 +90,19 @@ def pytest_addoption(parser):
 
 
 def _scope(item):
-  """An item's module and xdist group: the tests that share compiled programs."""
+  """The tests that share compiled programs: an item's xdist group (whose modules
+  are sized to share them), or its module if it has none."""
   mark = item.get_closest_marker("xdist_group")
-  return item.nodeid.split("::", 1)[0], mark.args[0] if mark and mark.args else None
+  return ("group", mark.args[0]) if mark and mark.args else ("module", item.nodeid.split("::", 1)[0])
 
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_teardown(item, nextitem):
-  """After the last test of a module or xdist group (its fixtures finalized), drops
-  JAX's in-memory compilations: a worker would otherwise keep every program the
-  suite compiled (gigabytes by the end). Later tests that need one again load it
-  from the session's compilation cache."""
+  """After the last test of an xdist group, or of a module outside any group (its
+  fixtures finalized), drops JAX's in-memory compilations: a worker would otherwise
+  keep every program the suite compiled (gigabytes by the end). Later tests that
+  need one again load it from the session's compilation cache; the modules of a
+  group keep theirs, as retracing and loading a large program takes seconds."""
   yield
   if "jax" in sys.modules and (nextitem is None or _scope(item) != _scope(nextitem)):
     sys.modules["jax"].clear_caches()

@@ -20,10 +20,11 @@ patch `dmcr_jax.train.sac.SACConfig` with them)."""
 
 def run_on_cpu_devices(script: str, devices: int = 2, timeout: int = 300) -> str:
   """`script` in a fresh Python with `devices` forced host CPU devices (the flag
-  must be set before JAX starts); its stdout, asserting it ended with "ok"."""
+  must be set before JAX starts; the session's compile flags are kept); its stdout,
+  asserting it ended with "ok"."""
   root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-  env = dict(os.environ, JAX_PLATFORMS="cpu",
-             XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}",
+  flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={devices}"
+  env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=flags.strip(),
              PYTHONPATH=os.pathsep.join([root] + [p for p in [os.environ.get("PYTHONPATH")]
                                                   if p]))
   out = subprocess.run([sys.executable, "-c", textwrap.dedent(script)], capture_output=True,

@@ -32,10 +32,23 @@ def _env(xla_flags=None):
   return env
 
 
+SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler"
+
+
+def _session_flags_but_the_scheduler() -> str | None:
+  """This session's XLA_FLAGS (the tests' compile setting, `tests/conftest.py`) less
+  the scheduler flag, which the package must add itself; None if nothing is left."""
+  flags = [f for f in os.environ.get("XLA_FLAGS", "").split() if not f.startswith(SCHEDULER_FLAG)]
+  return " ".join(flags) or None
+
+
 @pytest.mark.slow
 @pytest.mark.xdist_group("walker")
 def test_1024_vmapped_walkers_step_on_cpu():
-  out = subprocess.run([sys.executable, "-c", STEP_1024_WALKERS], env=_env(),
+  # The step hangs without the package's scheduler flag with or without the
+  # session's compile flags, which only make it compile faster.
+  out = subprocess.run([sys.executable, "-c", STEP_1024_WALKERS],
+                       env=_env(_session_flags_but_the_scheduler()),
                        capture_output=True, text=True, timeout=240)
   assert out.returncode == 0, out.stderr[-2000:]
   assert "stepped (1024, 8, 8, 9) True" in out.stdout
@@ -48,7 +61,7 @@ def test_the_flag_is_added_once_and_a_users_choice_is_kept():
     out = subprocess.run([sys.executable, "-c", show], env=_env(flags),
                          capture_output=True, text=True, timeout=120).stdout
     return [line for line in out.splitlines() if line.startswith("XLA_FLAGS=")][0][10:]
-  flag = "--xla_cpu_enable_concurrency_optimized_scheduler"
+  flag = SCHEDULER_FLAG
   assert run(None) == f"{flag}=false"
   assert run("--xla_dump_to=/tmp/x") == f"--xla_dump_to=/tmp/x {flag}=false"
   assert run(f"{flag}=true") == f"{flag}=true"

@@ -11,13 +11,17 @@ import pytest
 from dmcr_jax.train import demo as dm
 from dmcr_jax.train import sac
 
-# test_evaluate's group: its JAX-renderer evaluation is sized as the demo's (2 envs,
-# cartpole, 16 px), so one worker compiles that env and policy once for both.
-pytestmark = pytest.mark.xdist_group("evaluate")
+# test_train's and test_evaluate's group: test_evaluate's JAX-renderer evaluation is
+# sized as the demo's (2 envs, pendulum, 16 px) and test_train's device driver trains
+# as the demo does, so one worker compiles those programs once for all.
+pytestmark = pytest.mark.xdist_group("train")
 
-# Cartpole at action repeat 100 (10 agent steps per episode), tiny networks.
-TINY = dm.Demo(steps=24, num_envs=2, train_looks=2, image_size=16, action_repeat=100,
-               warmup_steps=8, eval_looks=2, eval_states=1,
+# Pendulum at action repeat 100 (10 agent steps per episode), tiny networks: the
+# files and the refusal do not depend on the task (the default, cartpole, is the
+# full test's); pendulum's env, with the fewest bodies to step and ray-cast,
+# compiles fastest.
+TINY = dm.Demo(task="pendulum-swingup", steps=24, num_envs=2, train_looks=2, image_size=16,
+               action_repeat=100, warmup_steps=8, eval_looks=2, eval_states=1,
                sac=sac.SACConfig(batch_size=8, conv_channels=4, feature_dim=8, hidden_dim=16))
 
 
@@ -83,7 +87,7 @@ def test_demo_writes_its_files_and_refuses_to_overwrite_them(tmp_path, capsys):
     assert "| seed 0, drq |" in f.read()
   assert result["train"]["steps"] == 24 and result["last_return"] is not None
   text = dm.report(TINY, result)
-  assert "What it cannot show" in text and "dmcr-train --task cartpole-balance --steps 50000" in text
+  assert "What it cannot show" in text and f"dmcr-train --task {TINY.task} --steps 50000" in text
   assert all(path in text for path in files.values())
   # A second demo into the same folder is refused before anything is done.
   with pytest.raises(ValueError, match="already holds a demo run"):

@@ -12,7 +12,9 @@ import dmcr_jax
 from dmcr_jax.train import evaluate as ev
 from dmcr_jax.train import loop, sac
 
-pytestmark = pytest.mark.xdist_group("evaluate")
+# test_demo's and test_train's group: the JAX-renderer evaluation here is sized as the
+# demo's (test_demo.py), so one worker compiles that env and policy once for both.
+pytestmark = pytest.mark.xdist_group("train")
 
 # Cartpole at action repeat 100: 10 agent steps per episode.
 CFG = loop.TrainConfig(task="cartpole-balance", action_repeat=100, image_size=16, seeds=(0, 1), num_envs=1,
@@ -23,16 +25,22 @@ TINY = ev.EvalConfig(visual_seeds=2, dynamics_seeds=2, train_episodes=3, quality
                      workers=1)
 
 
-@pytest.fixture(scope="module")
-def run_dir(tmp_path_factory):
-  """A `train`-style folder holding two freshly initialised agents (no training)."""
-  out = str(tmp_path_factory.mktemp("run"))
-  cfg = loop.TrainConfig(**{**CFG.__dict__, "out_dir": out})
+def _untrained_run(out: str, cfg: loop.TrainConfig) -> str:
+  """`out` made a `train`-style folder of `cfg`'s freshly initialised agents (no
+  training), checkpointed at step 3."""
+  cfg = loop.TrainConfig(**{**cfg.__dict__, "out_dir": out})
+  os.makedirs(out, exist_ok=True)
   loop.save_config(cfg, out)
   task = dmcr_jax.load(cfg.task)
   agents = loop.init_agents(cfg, (16, 16, 9), task.action_size)
   loop._save(loop._checkpointer(out), 3, agents, jax.random.key(0))
   return out
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+  """A `train`-style folder holding two freshly initialised agents (no training)."""
+  return _untrained_run(str(tmp_path_factory.mktemp("run")), CFG)
 
 
 def test_conditions_follow_the_papers_factor_table():
@@ -77,20 +85,25 @@ def test_bad_protocols_are_rejected():
 
 
 @pytest.mark.slow
-def test_the_jax_renderer_runs_the_same_protocol(run_dir, tmp_path, capsys):
+def test_the_jax_renderer_runs_the_same_protocol(tmp_path, capsys):
   # The same protocol rendered by the JAX ray caster: the table has the same shape,
   # and says which renderer drew it. Sized as `dmcr-demo`'s evaluation in
-  # test_demo.py (2 envs, same group and worker), which reuses its compilations.
+  # test_demo.py (its task, 2 envs, same group and worker), which reuses its
+  # compilations.
+  from tests.test_demo import TINY as DEMO
+  run_dir = _untrained_run(str(tmp_path / "run"), loop.TrainConfig(
+      **{**CFG.__dict__, "task": DEMO.task, "sac": DEMO.sac}))
   cfg = ev.EvalConfig(**{**TINY.__dict__, "quality": "exact", "workers": None,
                          "renderer": "jax", "conditions": ("none", "all"),
                          "dynamics_seeds": 1, "train_episodes": 2})
-  summary = ev.evaluate(run_dir, cfg, out_dir=str(tmp_path), agents=[0], progress=False)
+  summary = ev.evaluate(run_dir, cfg, out_dir=str(tmp_path / "eval"), agents=[0],
+                        progress=False)
   row = summary["agents"][0]
   assert len(row["train"]["episodes"]) == cfg.train_episodes
   for c in ("none", "all"):
     assert len(row["conditions"][c]["episodes"]) == cfg.visual_seeds * cfg.dynamics_seeds
     assert np.isfinite(row["conditions"][c]["mean"])
-  with open(tmp_path / "eval.md") as f:
+  with open(tmp_path / "eval" / "eval.md") as f:
     assert "rendered by the JAX ray caster" in f.read()
   # Without a progress bar, a line per condition ("none" is the train look: 2 passes).
   lines = [l for l in capsys.readouterr().err.splitlines() if l.startswith("evaluate: ")]

@@ -154,9 +154,12 @@ def test_render_inputs_alone_draw_what_the_whole_physics_draws(envs, actions):
   jenv = envs[0]
   jenv.reset(seed=5)
   env, state = jenv.functional, jenv.pixel_state
-  after = jax_env.step(env, state, np.asarray(actions[0]))[0]
+  # Inputs committed to the device, as the env passes them: the env's compilation
+  # of `step` is reused (an uncommitted argument compiles the same program again).
+  on_device = lambda x: jax.device_put(x, jax.devices()[0])
+  after = jax_env.step(env, state, on_device(actions[0]))[0]
   inputs = jax_env.render_inputs(after.physics, env.drawn_variables)
-  for resetting in (state.physics.needs_reset, np.array([True, False])):
+  for resetting in (state.physics.needs_reset, on_device(np.array([True, False]))):
     want = jax_env.observe(env, state, after.physics, resetting)
     got = jax_env.observe_inputs(env, state.replace(physics=None), inputs, resetting)
     assert got.physics is None

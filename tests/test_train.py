@@ -1,6 +1,7 @@
 """The training loop and `train` command: argument checks, checkpoints, kill and resume."""
 
 import csv
+import dataclasses
 import os
 import signal
 import subprocess
@@ -16,6 +17,7 @@ import pytest
 from dmcr_jax.train import loop, sac
 from dmcr_jax.train.__main__ import parse
 
+# With test_demo and test_evaluate, whose runs the drivers' tests share.
 pytestmark = pytest.mark.xdist_group("train")
 
 TINY = sac.SACConfig(batch_size=8, conv_channels=4, feature_dim=8, hidden_dim=16)
@@ -54,6 +56,13 @@ def test_defaults_follow_the_paper():
   assert cfg.task == "cartpole-balance" and cfg.steps == 50_000 and cfg.warmup_steps == 1000
   assert cfg.buffer_capacity == 100_000 and cfg.frame_stack == 3 and cfg.image_size == 84
   assert cfg.sac.batch_size == 256 and cfg.sac.aug == "drq" and cfg.action_repeat is None
+
+
+def demo_run(out, **changes) -> loop.TrainConfig:
+  """test_demo's training run (tiny pendulum, 2 envs, the JAX renderer, levels:2) into
+  `out`, with `changes`: sized alike, the runs share their compilations."""
+  from tests.test_demo import TINY as DEMO
+  return dataclasses.replace(DEMO.train_config(str(out)), out_dir=str(out), **changes)
 
 
 def _saved_run(tmp_path):
@@ -215,15 +224,14 @@ def test_host_and_device_drivers_train_identical_agents(tmp_path):
   # in the last bits, which Adam's normalised steps carry into every parameter).
   # Each leaf must agree within a thousandth of its largest entry; a different
   # key, update count or transition moves leaves by their own size.
+  # The demo's run (test_demo, same group) twice as long: the device driver's two
+  # chunks are the demo's one chunk, compiled once for both tests.
   agents = {}
   for physics in ("cpu", "device"):   # on a CPU: host driver, then device driver
-    cfg = loop.TrainConfig(steps=24, num_envs=2, checkpoint_every=0, renderer="jax",
-                           physics=physics, chunk_steps=4, out_dir=str(tmp_path / physics),
-                           **{k: v for k, v in CFG.items()
-                              if k not in ("quality", "workers", "num_envs")})
+    cfg = demo_run(tmp_path / physics, steps=48, chunk_steps=12, physics=physics)
     loop.train(cfg, progress=False)
     _, agents[physics], step = loop.load_run(cfg.out_dir)
-    assert step == 24 and int(agents[physics].step[0]) > 0  # updates ran
+    assert step == 48 and int(agents[physics].step[0]) > 0  # updates ran
   for a, b in zip(jax.tree.leaves(agents["cpu"]), jax.tree.leaves(agents["device"])):
     if np.asarray(a).dtype.kind in "biu":
       np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
@@ -249,11 +257,9 @@ def test_env_groups_step_in_turn_and_store_each_groups_own_frames(tmp_path, monk
   monkeypatch.setattr(train_step, "store_jit", recording_store)
   base = {k: v for k, v in CFG.items() if k not in ("quality", "workers", "num_envs")}
   updates = {}
-  for groups in (1, 2):
+  for groups in (1, 2):   # one group: the host driver run of the test above
     stores.clear()
-    cfg = loop.TrainConfig(steps=24, num_envs=2, env_groups=groups, checkpoint_every=0,
-                           renderer="jax", physics="cpu", out_dir=str(tmp_path / str(groups)),
-                           **base)
+    cfg = demo_run(tmp_path / str(groups), steps=24, env_groups=groups, physics="cpu")
     loop.train(cfg, progress=False)
     _, agents, step = loop.load_run(cfg.out_dir)
     assert step == 24
@@ -319,7 +325,9 @@ def test_agents_sharded_over_two_devices_or_mapped_match_one_vmapped_call():
           np.asarray(step.act_jit(sharded, put(obs), spec=spec, mesh=mesh)[1]), atol=1e-3)
       print("ok")
       """)
-  env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
+  # The session's compile flags (conftest) and two forced host devices.
+  flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2"
+  env = dict(os.environ, XLA_FLAGS=flags.strip(),
              JAX_PLATFORMS="cpu")
   out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                        env=env, timeout=600)
