@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The paper-table runs (issue 27) on every local GPU: train each job at the paper's length and
 # action repeat, export its agents, then evaluate it with the full protocol with both renderers side
-# by side (the ray caster and the pool's exact look). One job per GPU at a time; job i runs on GPU
-# i mod G.
+# by side (the ray caster and the pool's exact look). One job per GPU at a time; job i runs on the
+# (i mod G)-th of the G GPUs used.
 #
 #   benchmarks/paper_runs.sh OUT_DIR JOB [JOB ...]      JOB = task:aug[:seeds], e.g.
 #   benchmarks/paper_runs.sh runs/paper walker-walk:drq cheetah-run:drq hopper-stand:drq finger-spin:drq
@@ -14,15 +14,23 @@
 # A step whose output exists is skipped, so calling it again after an interruption goes on where it
 # stopped. Environment: STEPS (override the paper's length, for a smoke test), TRAIN_ARGS and
 # EVAL_ARGS (extra flags), POOL_EVAL_ARGS (the pool evaluation's alone, e.g. "--egl-devices 0,1"
-# to draw its frames on two GPUs), SKIP_POOL=1 (ray-caster evaluation only), WORKERS (render
-# workers per job; default: the cores divided among the GPUs, at most 16).
+# to draw its frames on two GPUs), SKIP_POOL=1 (ray-caster evaluation only), TRAIN_ONLY=1 (train
+# and export only; call again without it to evaluate), GPU_IDS (the GPUs to use, e.g. "2 3";
+# default: all), WORKERS (render workers per job; default: the cores divided among the host's
+# GPUs, at most 16).
 set -uo pipefail
 [ $# -ge 2 ] || { sed -n 2,9p "$0"; exit 2; }
 OUT=$1; shift
 mkdir -p "$OUT"
-GPUS=$(nvidia-smi -L 2>/dev/null | wc -l); [ "$GPUS" -ge 1 ] || GPUS=1
+HOST_GPUS=$(nvidia-smi -L 2>/dev/null | wc -l); [ "$HOST_GPUS" -ge 1 ] || HOST_GPUS=1
+read -r -a GPU_LIST <<< "${GPU_IDS:-$(seq -s ' ' 0 $(( HOST_GPUS - 1 )))}"
+GPUS=${#GPU_LIST[@]}
+for g in "${GPU_LIST[@]}"; do
+  [[ "$g" =~ ^[0-9]+$ ]] && [ "$g" -lt "$HOST_GPUS" ] || {
+    echo "GPU_IDS: $g is not one of this host's GPUs 0..$(( HOST_GPUS - 1 ))" >&2; exit 2; }
+done
 CORES=$(nproc)
-WORKERS=${WORKERS:-$(( CORES / GPUS > 16 ? 16 : (CORES / GPUS > 1 ? CORES / GPUS : 1) ))}
+WORKERS=${WORKERS:-$(( CORES / HOST_GPUS > 16 ? 16 : (CORES / HOST_GPUS > 1 ? CORES / HOST_GPUS : 1) ))}
 PHYS=$(( WORKERS / 2 ))
 steps_of() {
   python3 -c "from dmcr_jax.benchmarks.paper_table import TRAINING_STEPS as T; import sys; print(T[sys.argv[1]])" "$1"
@@ -40,7 +48,7 @@ run_job() {  # GPU JOB
   local dir="$OUT/$task-${aug//+/}-s${seeds//,/_}" steps=${STEPS:-$(steps_of "$task")}
   mkdir -p "$dir"
   local on="env CUDA_VISIBLE_DEVICES=$gpu MUJOCO_EGL_DEVICE_ID=$gpu"
-  [ "$GPUS" -gt 1 ] || on="env"
+  [ "$HOST_GPUS" -gt 1 ] || on="env"
   if [ ! -f "$dir/run/summary.json" ]; then
     $on python3 -m dmcr_jax.train --task "$task" --aug "$aug" --seeds "$seeds" --steps "$steps" \
       --dtype bfloat16 --checkpoint-every 10000 --log-every 500 --no-progress \
@@ -50,6 +58,7 @@ run_job() {  # GPU JOB
   fi
   [ -f "$dir/agents/config.json" ] || $on XLA_PYTHON_CLIENT_PREALLOCATE=false python3 -m dmcr_jax.benchmarks.export_params export \
       "$dir/run" "$dir/agents" > "$dir/export.log" 2>&1
+  [ -z "${TRAIN_ONLY:-}" ] || { echo "$2: trained and exported ($dir)"; return 0; }
   # Both evaluations at once on the job's GPU, neither preallocating its memory: the ray
   # caster's is GPU compute, the pool's mostly waits on its render workers' frames.
   local ev="$on XLA_PYTHON_CLIENT_PREALLOCATE=false"
@@ -66,10 +75,10 @@ run_job() {  # GPU JOB
   echo "$2: done ($dir)"
 }
 
-gpu_queue() {  # GPU: the jobs i with i mod GPUS == GPU, one after the other
-  local gpu=$1 i=0; shift
+gpu_queue() {  # SLOT: the jobs i with i mod GPUS == SLOT, one after the other, on GPU_LIST[SLOT]
+  local slot=$1 i=0; shift
   for job in "$@"; do
-    [ $(( i % GPUS )) -eq "$gpu" ] && run_job "$gpu" "$job"
+    [ $(( i % GPUS )) -eq "$slot" ] && run_job "${GPU_LIST[$slot]}" "$job"
     i=$(( i + 1 ))
   done
 }

@@ -2,8 +2,9 @@
 
 Runs the `train` command's parse and `dmcr_jax.train.loop.train` in this process with the
 arguments given (unknown ones go to `train`; see ``python -m dmcr_jax.train --help``) on
-top of the README's H100 command (cartpole-balance, 50,000 training steps, 16
-envs, bfloat16, dm_control's exact look, no intermediate checkpoints), into a
+top of the README's H100 command (cartpole-balance, 50,000 training steps,
+bfloat16, dm_control's exact look, no intermediate checkpoints; `train`'s defaults
+otherwise, e.g. its number of envs), into a
 fresh run folder, and reports: the wall time of the training loop (compilation
 included, as `train` reports it) and of the whole run (env start-up too),
 transitions per second per agent, the first training step (and its loop time)
