@@ -12,7 +12,8 @@
 # MUJOCO_GL=egl. Per job it writes OUT_DIR/<task>-<aug>-s<seeds>/: run/ (train's folder), eval_jax/
 # and eval_pool/ (evaluate's eval.json, .md, .png), agents/ (export_params), and one log per step.
 # A step whose output exists is skipped, so calling it again after an interruption goes on where it
-# stopped. Environment: STEPS (override the paper's length, for a smoke test), TRAIN_ARGS and
+# stopped; a job folder holding only agents/ (an export of a finished run, e.g. copied from another
+# machine) is imported and evaluated. Environment: STEPS (override the paper's length, for a smoke test), TRAIN_ARGS and
 # EVAL_ARGS (extra flags), POOL_EVAL_ARGS (the pool evaluation's alone, e.g. "--egl-devices 0,1"
 # to draw its frames on two GPUs), SKIP_POOL=1 (ray-caster evaluation only), TRAIN_ONLY=1 (train
 # and export only; call again without it to evaluate), GPU_IDS (the GPUs to use, e.g. "2 3";
@@ -49,6 +50,13 @@ run_job() {  # GPU JOB
   mkdir -p "$dir"
   local on="env CUDA_VISIBLE_DEVICES=$gpu MUJOCO_EGL_DEVICE_ID=$gpu"
   [ "$HOST_GPUS" -gt 1 ] || on="env"
+  # Agents exported on another machine (agents/ with its summary.json, no run/): import them,
+  # so that the job goes straight on to its evaluations.
+  if [ ! -f "$dir/run/summary.json" ] && [ ! -d "$dir/run/checkpoints" ] && [ -f "$dir/agents/summary.json" ]; then
+    $on XLA_PYTHON_CLIENT_PREALLOCATE=false python3 -m dmcr_jax.benchmarks.export_params import \
+      "$dir/agents" "$dir/run" > "$dir/import.log" 2>&1 \
+      || { echo "$2: importing $dir/agents failed, see $dir/import.log" >&2; return 1; }
+  fi
   if [ ! -f "$dir/run/summary.json" ]; then
     $on python3 -m dmcr_jax.train --task "$task" --aug "$aug" --seeds "$seeds" --steps "$steps" \
       --dtype bfloat16 --checkpoint-every 10000 --log-every 500 --no-progress \
