@@ -34,7 +34,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 
 import jax
-from mujoco import mjx
+from dmcr_jax._mjx import mjx  # mujoco.mjx, quietly
 
 from dmcr_jax.benchmarks import rows as R
 from dmcr_jax import models

@@ -34,7 +34,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from mujoco import mjx
+from dmcr_jax._mjx import mjx  # mujoco.mjx, quietly
 
 from dmcr_jax.benchmarks import rows as R
 from dmcr_jax import models

@@ -22,9 +22,13 @@ package is imported before JAX's first computation (when XLA reads its flags);
 set the flag yourself to choose otherwise.
 
 mujoco-mjx prints "Failed to import warp: No module named 'warp'" to stdout when
-the optional `warp` package is absent; the package imports `mujoco.mjx` with that
-message dropped (any other message it prints goes to stderr), so stdout carries
-only what a command writes (`train ... | jq` works).
+the optional `warp` package is absent; the package's modules import `mujoco.mjx`
+through `dmcr_jax._mjx`, which drops that message (any other message it prints goes
+to stderr), so stdout carries only what a command writes (`train ... | jq` works).
+
+The names above (`make`, `levels`, `GymEnv`, ...) import their modules on first
+use, so `import dmcr_jax` itself is light: a worker process of the render pool,
+which imports the package to reach its own modules, does not load MJX or the envs.
 """
 
 import os as _os
@@ -38,31 +42,47 @@ CPU_SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
 if "xla_cpu_enable_concurrency_optimized_scheduler" not in _os.environ.get("XLA_FLAGS", ""):
   _os.environ["XLA_FLAGS"] = f"{_os.environ.get('XLA_FLAGS', '')} {CPU_SCHEDULER_FLAG}".strip()
 
+from dmcr_jax.models import ALL_TASKS, DOMAIN_TASKS, load  # names only: light
+
+_LAZY = {
+    "TEST_SEEDS": "dmcr_jax.visuals.levels", "TRAIN_SEEDS": "dmcr_jax.visuals.levels",
+    "SeedRange": "dmcr_jax.visuals.levels", "levels": "dmcr_jax.visuals.levels",
+    "JaxPixelVectorEnv": "dmcr_jax.env", "PixelVectorEnv": "dmcr_jax.env",
+    "make": "dmcr_jax.env", "DmEnv": "dmcr_jax.adapters", "GymEnv": "dmcr_jax.adapters",
+}
+"""The package's names that live in heavier modules, imported on first use."""
 
 
-def _import_mjx_quietly() -> None:
-  """Imports `mujoco.mjx` without its missing-`warp` notices on stdout (module doc)."""
-  import contextlib
-  import io
-  import sys
-  if "mujoco.mjx" in sys.modules:
-    return
-  captured = io.StringIO()
-  with contextlib.redirect_stdout(captured):
-    import mujoco.mjx  # noqa: F401
-  for line in captured.getvalue().splitlines():
-    if "No module named 'warp'" not in line:
-      print(line, file=sys.stderr)
+def __getattr__(name: str):
+  module = _LAZY.get(name)
+  if module is None:
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+  import importlib
+  value = getattr(importlib.import_module(module), name)
+  globals()[name] = value
+  return value
 
 
-_import_mjx_quietly()
+def __dir__():
+  return sorted(set(globals()) | set(_LAZY))
 
-from dmcr_jax.models import ALL_TASKS, DOMAIN_TASKS, load
-from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, SeedRange, levels
-from dmcr_jax.env import JaxPixelVectorEnv, PixelVectorEnv, make
-from dmcr_jax.adapters import DmEnv, GymEnv, register_envs
 
-register_envs()
+_ENV_ID = "dmcr/{task}-v0"
+"""The gymnasium id of a task's single env (`dmcr_jax.adapters.ENV_ID`)."""
+
+
+def _register_envs() -> None:
+  """Registers `dmcr/<task>-v0` for every task with gymnasium (idempotent); the
+  entry point, `dmcr_jax.adapters.GymEnv`, is imported when an env is made."""
+  import gymnasium
+  for task in ALL_TASKS:
+    env_id = _ENV_ID.format(task=task)
+    if env_id not in gymnasium.registry:
+      gymnasium.register(id=env_id, entry_point="dmcr_jax.adapters:GymEnv",
+                         kwargs={"task": task})
+
+
+_register_envs()
 
 __version__ = "0.1.0"
 __all__ = ["ALL_TASKS", "DOMAIN_TASKS", "DmEnv", "GymEnv", "JaxPixelVectorEnv",

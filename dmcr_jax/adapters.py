@@ -24,9 +24,8 @@ import gymnasium
 import numpy as np
 from dm_env import specs
 
+from dmcr_jax import _ENV_ID as ENV_ID  # "dmcr/{task}-v0"
 from dmcr_jax.env import PixelVectorEnv
-
-ENV_ID = "dmcr/{task}-v0"
 
 
 def _first(info: dict) -> dict:
@@ -123,10 +122,7 @@ class DmEnv(dm_env.Environment):
 
 
 def register_envs() -> None:
-  """Registers `dmcr/<task>-v0` for every task with gymnasium (idempotent)."""
-  from dmcr_jax.models import ALL_TASKS
-  for task in ALL_TASKS:
-    env_id = ENV_ID.format(task=task)
-    if env_id not in gymnasium.registry:
-      gymnasium.register(id=env_id, entry_point="dmcr_jax.adapters:GymEnv",
-                         kwargs={"task": task})
+  """Registers `dmcr/<task>-v0` (`ENV_ID`) for every task with gymnasium
+  (idempotent; `import dmcr_jax` does it)."""
+  import dmcr_jax
+  dmcr_jax._register_envs()

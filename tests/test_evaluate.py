@@ -173,7 +173,9 @@ def test_invariance_is_zero_without_visual_change_and_positive_with_floors(run_d
 
 def test_conv_activations_match_a_numpy_convolution():
   from dmcr_jax.train import analysis
-  agent = sac.init_agent(jax.random.key(0), (16, 16, 9), 1, CFG.sac)
+  # The fixture run's first agent, as `loop.init_agents` makes it (one jitted
+  # initialiser, compiled already for the run directories).
+  agent = jax.tree.map(lambda x: x[0], loop.init_agents(CFG, (16, 16, 9), 1))
   obs = np.random.default_rng(0).integers(0, 256, (2, 16, 16, 9), dtype=np.uint8)
   maps = analysis.conv_activations(agent.networks.encoder, agent.params["encoder"], obs)
   assert [m.shape for m in maps] == [(2, 7, 7), (2, 5, 5), (2, 3, 3), (2, 1, 1)]

@@ -23,8 +23,10 @@ from dmcr_jax.train import evaluate as ev
 from dmcr_jax.train import loop, sac
 from dmcr_jax.train.__main__ import parse
 
-# One worker runs the module, so its module-scoped training run is made once.
-pytestmark = pytest.mark.xdist_group("few_shot")
+# One worker runs the module, so its module-scoped training run is made once; with
+# test_evaluate (group "train"), whose protocol env and policy its evaluation shares
+# (cartpole, two agents of four envs each, the same networks).
+pytestmark = pytest.mark.xdist_group("train")
 
 TINY = sac.SACConfig(batch_size=8, conv_channels=4, feature_dim=8, hidden_dim=16)
 SMALL = dict(action_repeat=100, image_size=16, num_envs=2, quality="fastest", workers=1,

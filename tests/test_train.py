@@ -110,8 +110,9 @@ def test_open_run_checks_a_resumed_config_before_writing(tmp_path):
 
 @pytest.mark.slow
 def test_checkpoint_round_trip(tmp_path):
-  make = lambda s: jax.vmap(lambda k: sac.init_agent(k, (16, 16, 9), 1, TINY))(
-      jax.random.split(jax.random.key(s), 2))
+  # Two agents as a run makes them (one jitted initialiser, shared with the group's
+  # other tests; an eager vmap compiles each of its many operations).
+  make = lambda s: loop.init_agents(loop.TrainConfig(seeds=(s, s + 1), sac=TINY), (16, 16, 9), 1)
   saved, key = make(0), jax.random.key(42)
   manager = loop._checkpointer(str(tmp_path))
   loop._save(manager, 7, saved, key)
@@ -288,8 +289,7 @@ def test_agents_sharded_over_two_devices_or_mapped_match_one_vmapped_call():
       cfg = sac.SACConfig(batch_size=8, conv_channels=4, feature_dim=8, hidden_dim=16)
       spec = step.StepSpec(agents=2, num_envs=2, warmup_steps=0, utd=1.0, sac=cfg,
                            agent_loop="vmap", low=(-1.0,), high=(1.0,))
-      agents = jax.vmap(lambda k: sac.init_agent(k, (16, 16, 9), 1, cfg))(
-          jax.random.split(jax.random.key(0), 2))
+      agents = loop.init_agents(loop.TrainConfig(seeds=(0, 1), sac=cfg), (16, 16, 9), 1)
       one = replay.init(64, 2, (16, 16, 3), 1, 3)
       buffers = jax.tree.map(lambda x: jnp.broadcast_to(x, (2,) + x.shape), one)
       learner = step.init_learner(agents, buffers, jax.random.key(3), 0, spec)

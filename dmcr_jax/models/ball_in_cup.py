@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from mujoco import mjx
+from dmcr_jax._mjx import mjx  # mujoco.mjx, quietly
 
 from dmcr_jax.models import names
 from dmcr_jax.models.base import TaskSpec

@@ -67,7 +67,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 from flax import struct
-from mujoco import mjx
+from dmcr_jax._mjx import mjx  # mujoco.mjx, quietly
 
 from dmcr_jax.models.names import compile_suite_model, field_id
 

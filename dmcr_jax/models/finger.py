@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
+from dmcr_jax._mjx import mjx  # mujoco.mjx, quietly
 
 from dmcr_jax.models import names, randomizers
 from dmcr_jax.models.base import TaskSpec

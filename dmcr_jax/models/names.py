@@ -79,7 +79,7 @@ def find_id(m, obj: mujoco.mjtObj, name: str) -> int:
   `mjx.Model`), −1 if there is none."""
   if isinstance(m, mujoco.MjModel):
     return int(mujoco.mj_name2id(m, obj, name))
-  from mujoco import mjx  # pylint: disable=g-import-not-at-top
+  from dmcr_jax._mjx import mjx  # pylint: disable=g-import-not-at-top
   return int(mjx.name2id(m, obj, name))
 
 

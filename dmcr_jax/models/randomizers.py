@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
+from dmcr_jax._mjx import mjx  # mujoco.mjx, quietly
 
 
 def randomize_limited_and_rotational_joints(key: jax.Array, m: mjx.Model,

@@ -14,15 +14,34 @@ Modules: `factors` (names, Table 5), `ranges` (per-domain data), `params`
 apply, reference renderer), `show` (the `dmcr-show` command).
 """
 
-from dmcr_jax.visuals.factors import (APPLICABLE, DOMAINS, FACTOR_IDS, FACTORS,
-                                      active_factors, parse_vary)
-from dmcr_jax.visuals.params import VisualParams, check_seeds, defaults, sample
-from dmcr_jax.visuals.render_model import (FrameRenderer, Looks, RenderModel,
-                                           apply, build_render_model,
-                                           close_renderers, prepare,
-                                           render_frame, set_skybox)
-from dmcr_jax.visuals.textures import (NUM_BACKGROUNDS, NUM_FLOORS, TextureBank,
-                                       cache_dir, load_bank)
+_LAZY = {
+    **dict.fromkeys(("APPLICABLE", "DOMAINS", "FACTOR_IDS", "FACTORS", "active_factors",
+                     "parse_vary"), "dmcr_jax.visuals.factors"),
+    **dict.fromkeys(("VisualParams", "check_seeds", "defaults", "sample"),
+                    "dmcr_jax.visuals.params"),
+    **dict.fromkeys(("FrameRenderer", "Looks", "RenderModel", "apply", "build_render_model",
+                     "close_renderers", "prepare", "render_frame", "set_skybox"),
+                    "dmcr_jax.visuals.render_model"),
+    **dict.fromkeys(("NUM_BACKGROUNDS", "NUM_FLOORS", "TextureBank", "cache_dir",
+                     "load_bank"), "dmcr_jax.visuals.textures"),
+}
+"""Where the names below live; each module is imported on first use (a worker
+process that only needs `dmcr_jax.visuals.pool` loads neither JAX nor MuJoCo)."""
+
+
+def __getattr__(name: str):
+  module = _LAZY.get(name)
+  if module is None:
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+  import importlib
+  value = getattr(importlib.import_module(module), name)
+  globals()[name] = value
+  return value
+
+
+def __dir__():
+  return sorted(set(globals()) | set(_LAZY))
+
 
 __all__ = [
     "APPLICABLE", "DOMAINS", "FACTORS", "FACTOR_IDS", "FrameRenderer", "Looks",
