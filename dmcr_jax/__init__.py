@@ -42,6 +42,7 @@ CPU_SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
 if "xla_cpu_enable_concurrency_optimized_scheduler" not in _os.environ.get("XLA_FLAGS", ""):
   _os.environ["XLA_FLAGS"] = f"{_os.environ.get('XLA_FLAGS', '')} {CPU_SCHEDULER_FLAG}".strip()
 
+from dmcr_jax._lazy import lazy_names as _lazy_names
 from dmcr_jax.models import ALL_TASKS, DOMAIN_TASKS, load  # names only: light
 
 _LAZY = {
@@ -52,19 +53,7 @@ _LAZY = {
 }
 """The package's names that live in heavier modules, imported on first use."""
 
-
-def __getattr__(name: str):
-  module = _LAZY.get(name)
-  if module is None:
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-  import importlib
-  value = getattr(importlib.import_module(module), name)
-  globals()[name] = value
-  return value
-
-
-def __dir__():
-  return sorted(set(globals()) | set(_LAZY))
+__getattr__, __dir__ = _lazy_names(__name__, _LAZY, globals())
 
 
 _ENV_ID = "dmcr/{task}-v0"

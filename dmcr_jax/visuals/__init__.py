@@ -14,6 +14,8 @@ Modules: `factors` (names, Table 5), `ranges` (per-domain data), `params`
 apply, reference renderer), `show` (the `dmcr-show` command).
 """
 
+from dmcr_jax._lazy import lazy_names as _lazy_names
+
 _LAZY = {
     **dict.fromkeys(("APPLICABLE", "DOMAINS", "FACTOR_IDS", "FACTORS", "active_factors",
                      "parse_vary"), "dmcr_jax.visuals.factors"),
@@ -28,19 +30,7 @@ _LAZY = {
 """Where the names below live; each module is imported on first use (a worker
 process that only needs `dmcr_jax.visuals.pool` loads neither JAX nor MuJoCo)."""
 
-
-def __getattr__(name: str):
-  module = _LAZY.get(name)
-  if module is None:
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-  import importlib
-  value = getattr(importlib.import_module(module), name)
-  globals()[name] = value
-  return value
-
-
-def __dir__():
-  return sorted(set(globals()) | set(_LAZY))
+__getattr__, __dir__ = _lazy_names(__name__, _LAZY, globals())
 
 
 __all__ = [
