@@ -17,8 +17,8 @@
 # test), TRAIN_ARGS and EVAL_ARGS (extra flags), POOL_EVAL_ARGS (the pool evaluation's alone, e.g.
 # "--egl-devices 0,1" to draw its frames on two GPUs), SKIP_POOL=1 (ray-caster evaluation only),
 # TRAIN_ONLY=1 (train and export only; call again without it to evaluate), GPU_IDS (the GPUs to
-# use, e.g. "2 3"; default: all), WORKERS (render workers per job; default: the cores divided among the host's
-# GPUs, at most 16).
+# use, e.g. "2 3"; default: all), WORKERS (render workers per job; default: the cores divided
+# among the host's GPUs, at most 16).
 set -uo pipefail
 [ $# -ge 2 ] || { sed -n 2,9p "$0"; exit 2; }
 OUT=$1; shift
