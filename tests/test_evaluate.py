@@ -217,6 +217,58 @@ def test_eval_json_is_valid_json_when_e_g_is_undefined(run_dir, tmp_path, monkey
   assert saved["mean"]["e_g"]["none"] is None
 
 
+def test_an_interrupted_evaluation_runs_only_the_missing_conditions_when_called_again(
+    run_dir, tmp_path, monkeypatch):
+  # Pass i returns i in every episode, so the results show which pass made them; no
+  # env is stepped (the bookkeeping is under test, not the episodes).
+  calls = []
+  def fake_episodes(env, policy, seed):
+    if len(calls) == stop_at:
+      raise KeyboardInterrupt  # the machine taken back mid-evaluation
+    calls.append(1)
+    return np.full(env.num_envs, float(len(calls) - 1))
+
+  class NoEnv:
+    def __init__(self, num_envs):
+      self.num_envs = num_envs
+    def set_visuals(self, seeds, vary):
+      assert len(seeds) == self.num_envs
+    def __enter__(self):
+      return self
+    def __exit__(self, *exc):
+      return False
+  monkeypatch.setattr(ev, "run_episodes", fake_episodes)
+  monkeypatch.setattr(dmcr_jax, "make", lambda task, num_envs, **options: NoEnv(num_envs))
+  cfg = ev.EvalConfig(**{**TINY.__dict__, "conditions": ("none", "light", "all")})
+  stop_at = None
+  whole = ev.evaluate(run_dir, cfg, out_dir=str(tmp_path / "whole"), progress=False)
+
+  calls.clear()
+  stop_at = 2
+  with pytest.raises(KeyboardInterrupt):
+    ev.evaluate(run_dir, cfg, out_dir=str(tmp_path / "cut"), progress=False)
+  assert os.path.exists(tmp_path / "cut" / ev.PROGRESS_FILE)
+  assert not os.path.exists(tmp_path / "cut" / "eval.json")
+  stop_at = None
+  resumed = ev.evaluate(run_dir, cfg, out_dir=str(tmp_path / "cut"), progress=False)
+  assert len(calls) == 3  # two passes before the cut, only "all" after it
+  for a, b in zip(whole["agents"], resumed["agents"]):
+    assert a["train"]["episodes"] == b["train"]["episodes"]
+    for c in cfg.conditions:
+      assert a["conditions"][c]["episodes"] == b["conditions"][c]["episodes"]
+  assert not os.path.exists(tmp_path / "cut" / ev.PROGRESS_FILE)
+
+  # Progress kept for another protocol (here other held-out looks) is not used.
+  calls.clear()
+  stop_at = 1
+  with pytest.raises(KeyboardInterrupt):
+    ev.evaluate(run_dir, cfg, out_dir=str(tmp_path / "other"), progress=False)
+  stop_at = None
+  other = ev.evaluate(run_dir, dataclasses.replace(cfg, seed=1), out_dir=str(tmp_path / "other"),
+                      progress=False)
+  assert len(calls) == 1 + 3 and other["agents"][0]["conditions"]["none"]["mean"] == 1.0
+
+
 def _summary(augs, seeds=(0, 1), task="cartpole-balance"):
   """A synthetic `evaluate` summary: agent returns 100·(agent + 1) − 10·condition."""
   from dmcr_jax.train import paper_results

@@ -38,6 +38,9 @@ E_G against the number of training looks (`few_shot.json`, `few_shot.md`,
 `few_shot.png`), with the zero-shot agents' (levels:1, dm_control's look) "all"
 returns as reference lines where the run has them.
 
+An interrupted evaluation goes on where it stopped when called again with the same
+arguments: finished conditions wait in the output folder's `progress.npz`.
+
     dmcr-evaluate runs/cartpole-balance-drq            # or: python -m dmcr_jax.train.evaluate …
     dmcr-evaluate runs/cartpole-balance-drq --invariance --attention --video
 """
@@ -200,6 +203,49 @@ def run_episodes(env, policy, seed) -> np.ndarray:
   return np.asarray(info["episode_return"], np.float64)
 
 
+PROGRESS_FILE = "progress.npz"
+"""In `evaluate`'s output folder while it runs: the finished passes' returns."""
+
+
+def load_progress(path: str, key: dict) -> tuple[dict, float]:
+  """The passes finished by an earlier, interrupted `evaluate` of the same protocol.
+
+  Args:
+    path: the progress file (`PROGRESS_FILE` in the output folder).
+    key: what fixes the episodes (run, checkpoint step, agents, protocol); a file
+      written under another key is ignored.
+
+  Returns:
+    ({pass: (returns (K, n) float64, wall s)}, wall s spent on them); empty when
+    there is no usable file.
+  """
+  if not os.path.exists(path):
+    return {}, 0.0
+  try:
+    with np.load(path) as f:
+      meta = json.loads(str(f["meta"]))
+      if meta["key"] != json.loads(json.dumps(key)):
+        print(f"evaluate: ignoring {path} (written for another run or protocol)",
+              file=sys.stderr, flush=True)
+        return {}, 0.0
+      done = {name: (f[f"returns/{name}"], wall) for name, wall in meta["walls"].items()}
+  except (OSError, ValueError, KeyError) as e:
+    print(f"evaluate: ignoring {path} ({e})", file=sys.stderr, flush=True)
+    return {}, 0.0
+  return done, float(meta["elapsed_s"])
+
+
+def save_progress(path: str, key: dict, done: dict, elapsed_s: float) -> None:
+  """Writes the finished passes (`load_progress`'s format) atomically: a crash
+  while writing leaves the previous file."""
+  meta = dict(key=key, walls={name: wall for name, (_, wall) in done.items()},
+              elapsed_s=elapsed_s)
+  arrays = {f"returns/{name}": returns for name, (returns, _) in done.items()}
+  tmp = path + ".tmp.npz"
+  np.savez(tmp, meta=json.dumps(meta), **arrays)
+  os.replace(tmp, path)
+
+
 def _is_default_look(train_look) -> bool:
   """Whether every training episode showed seed 0's look, which "none" also shows
   (a fixed seed 0, or the range levels:1 = [0, 1))."""
@@ -242,7 +288,13 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
   Returns:
     The results (also in `<out_dir>/eval.json`, where an undefined E_G, NaN
     here, is null): per agent the train return, every condition's mean, std and
-    per-episode returns, E_G per condition, and the wall time.
+    per-episode returns, E_G per condition, and the wall time (of every attempt,
+    when resumed).
+
+  Each finished condition is kept in `<out_dir>/progress.npz` until the results
+  are written: called again after an interruption with the same run, agents and
+  protocol, it runs only the conditions still missing (the episodes are the same
+  either way: every condition's looks and initial states follow from `cfg.seed`).
 
   Raises:
     FileNotFoundError: no config.json or no checkpoint in `run_dir`.
@@ -275,10 +327,21 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
                       frame_stack=train_cfg.frame_stack, image_size=train_cfg.image_size,
                       seed=cfg.seed, **render_options(cfg))
   need_train = [a for a in chosen if not shares[a]]
-  bar, passes, finished = None, len(conditions) + bool(need_train), 0
+  # Every finished pass is kept in the output folder, so that evaluating again after
+  # a crash or a machine taken back runs only the passes still missing.
+  progress_path = os.path.join(out_dir, PROGRESS_FILE)
+  progress_key = dict(run_dir=os.path.abspath(run_dir), checkpoint_step=int(step),
+                      agents=chosen, conditions=list(conditions),
+                      config={name: v for name, v in dataclasses.asdict(cfg).items()
+                              if name not in ("workers", "egl_devices")})  # same pixels either way
+  done, earlier_s = load_progress(progress_path, progress_key)
+  if done:
+    print(f"evaluate: resuming from {progress_path}: {', '.join(done)} already done",
+          file=sys.stderr, flush=True)
+  bar, passes, finished = None, len(conditions) + bool(need_train), len(done)
   if progress:
     from tqdm.auto import tqdm
-    bar = tqdm(total=passes, desc="evaluate", unit="condition")
+    bar = tqdm(total=passes, initial=finished, desc="evaluate", unit="condition")
 
   def run(visual_seeds, vary: str, label: str) -> tuple[np.ndarray, float]:
     """Every agent's block under these looks: returns (K, n) and the wall time."""
@@ -295,16 +358,21 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
             f"{returns.mean():.1f}, {wall:.0f} s", file=sys.stderr, flush=True)
     return returns, wall
 
+  def keep(name: str, result: tuple[np.ndarray, float]) -> None:
+    done[name] = result
+    save_progress(progress_path, progress_key, done,
+                  earlier_s + time.perf_counter() - t_start)
+
   with env:
-    done = {}
     for condition in conditions:
-      done[condition] = run(test_looks, "none" if condition == "none" else condition,
-                            condition)
-    if need_train:
+      if condition not in done:
+        keep(condition, run(test_looks, "none" if condition == "none" else condition,
+                            condition))
+    if need_train and "train" not in done:
       # Agents that share "none" keep dm_control's look in their block (unused).
       train_seeds = np.concatenate([per_env_seeds if shares[a] else
                                     train_look_seeds(looks[a], n, cfg.seed) for a in chosen])
-      done["train"] = run(train_seeds, train_cfg.vary, "train")
+      keep("train", run(train_seeds, train_cfg.vary, "train"))
   results = []
   for i, a in enumerate(chosen):
     seed, aug = specs[a]
@@ -335,7 +403,7 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
                  config=dataclasses.asdict(cfg), conditions=list(conditions),
                  test_visual_seeds=test_seeds.tolist(),
                  train_look=str(train_cfg.visual_seeds), agents=results,
-                 wall_s=time.perf_counter() - t_start)
+                 wall_s=earlier_s + time.perf_counter() - t_start)
   summary["mean"] = _mean_row(results, conditions)
   summary["augs"] = aug_groups(summary)
   with open(os.path.join(out_dir, "eval.json"), "w") as f:
@@ -345,6 +413,7 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
   plot(summary, os.path.join(out_dir, "eval.png"))
   if several:
     write_few_shot(summary, out_dir)
+  os.remove(progress_path)
   return summary
 
 
