@@ -65,6 +65,14 @@ def test_a_curve_that_learns_slower_is_flagged_and_seeds_in_separate_runs_pool(t
   flags = result["diff"]["new"]["within_noise"]
   assert flags[0] and not any(flags[2:])   # equal at the start, apart later
   assert "outside" in curves.markdown(result)
+  assert "One seed" not in curves.markdown(result)
+
+
+def test_one_seed_per_label_is_said_to_have_no_noise_estimate(tmp_path):
+  runs = {"old": [curves.read_log(write_log(tmp_path / "old", [np.linspace(0, 900, 10)], STEPS))],
+          "new": [curves.read_log(write_log(tmp_path / "new", [np.linspace(0, 800, 10)], STEPS))]}
+  table = curves.markdown(curves.compare(runs, bins=5))
+  assert "One seed for old and new: no spread" in table
 
 
 def test_windows_end_at_the_shortest_run(tmp_path):

@@ -146,8 +146,11 @@ def markdown(result: dict) -> str:
     lines.append("| " + " | ".join(cells) + " |")
   for label in labels[1:]:
     flags = [f for f in result["diff"][label]["within_noise"] if f is not None]
+    single = [lb for lb in (first, label) if len(result["labels"][lb]["agents"]) < 2]
+    caveat = (f" One seed for {' and '.join(single)}: no spread to measure noise by, so "
+              "every difference is flagged." if single else "")
     lines.append(f"\n{label} against {first}: {sum(flags)} of {len(flags)} windows within "
-                 "seed noise (|difference of means| ≤ the larger spread over seeds).")
+                 "seed noise (|difference of means| ≤ the larger spread over seeds)." + caveat)
   return "\n".join(lines) + "\n"
 
 
@@ -159,12 +162,17 @@ def plot(result: dict, path: str) -> None:
   edges = np.array(result["edges"])
   mid = 0.5 * (edges[1:] + edges[:-1])
   fig, ax = plt.subplots(figsize=(6, 3.5))
+  def line(values, **style):  # joined over windows without an episode (NaN)
+    values = np.asarray(values, float)
+    seen = np.isfinite(values)
+    ax.plot(mid[seen], values[seen], **style)
   for i, (label, curve) in enumerate(result["labels"].items()):
     color = f"C{i}"
     for agent in curve["agents"]:
-      ax.plot(mid, agent, color=color, lw=0.7, alpha=0.5)
-    ax.plot(mid, curve["mean"], color=color, lw=2, marker="o", ms=3,
-            label=f"{label} ({len(curve['agents'])} seeds)")
+      line(agent, color=color, lw=0.7, alpha=0.5)
+    seeds = len(curve["agents"])
+    line(curve["mean"], color=color, lw=2, marker="o", ms=3,
+         label=f"{label} ({seeds} seed{'s' if seeds != 1 else ''})")
   ax.set_xlabel("training step (transitions per agent)")
   ax.set_ylabel("episode return")
   ax.legend()
