@@ -11,6 +11,10 @@ import pytest
 
 from dmcr_jax.benchmarks import profile as P
 
+# One worker runs the module: the command's tests profile the same render program,
+# compiled once for all of them.
+pytestmark = pytest.mark.xdist_group("benchmarks_profile")
+
 
 def _gpu_trace():
   return [

@@ -1,5 +1,5 @@
 """The batched pixel env: physics equal to the models', NEXT_STEP auto-reset, frame
-stacks, determinism, few-shot seed ranges, bad input, memory over 10,000 steps."""
+stacks, determinism, few-shot seed ranges, bad input, memory over 5,000 steps."""
 
 import os
 
@@ -248,9 +248,11 @@ def _rss_mib(pids) -> float:
 
 
 @pytest.mark.slow
-def test_memory_does_not_grow_over_10000_steps():
+def test_memory_does_not_grow_over_5000_steps():
   # A new held-out look every episode; sized as test_adapters' vector env test (same
-  # group), whose physics compilation this reuses.
+  # group), whose physics compilation this reuses. Over the 4,000 measured steps (4
+  # episodes) the bound catches a leak of 2 KiB a step (less than one step's frames)
+  # or of 2 MiB an episode.
   with dmcr_jax.make(TASK, num_envs=2, visual_seeds=TEST_SEEDS, frame_skip=1,
                      image_size=16, workers=1, quality="fastest") as env:
     env.reset(seed=0)
@@ -259,11 +261,11 @@ def test_memory_does_not_grow_over_10000_steps():
     for _ in range(1000):  # warm up: compile, allocator pools
       env.step(a)
     before = _rss_mib(pids)
-    for _ in range(9000):
+    for _ in range(4000):
       _, _, _, _, info = env.step(a)
     after = _rss_mib(pids)
-  assert info["episode_index"].min() >= 9  # episodes of 1,000 steps went by (with resets)
-  assert after - before < 20, f"RSS grew from {before:.0f} to {after:.0f} MiB"
+  assert info["episode_index"].min() >= 4  # episodes of 1,000 steps went by (with resets)
+  assert after - before < 8, f"RSS grew from {before:.1f} to {after:.1f} MiB"
 
 
 def test_frame_skip_that_does_not_divide_the_episode_ends_it_on_time(env, one_step):
