@@ -12,13 +12,13 @@
 # MUJOCO_GL=egl. Per job it writes OUT_DIR/<task>-<aug>-s<seeds>/: run/ (train's folder), eval_jax/
 # and eval_pool/ (evaluate's eval.json, .md, .png), agents/ (export_params), and one log per step.
 # A step whose output exists is skipped, so calling it again after an interruption goes on where it
-# stopped (an evaluation from its last finished condition); a job folder holding only agents/ (an export of a finished run, e.g. copied from another
-# machine) is imported and evaluated. Environment: STEPS (override the paper's length, for a smoke
-# test), TRAIN_ARGS and EVAL_ARGS (extra flags), POOL_EVAL_ARGS (the pool evaluation's alone, e.g.
-# "--egl-devices 0,1" to draw its frames on two GPUs), SKIP_POOL=1 (ray-caster evaluation only),
-# TRAIN_ONLY=1 (train and export only; call again without it to evaluate), GPU_IDS (the GPUs to
-# use, e.g. "2 3"; default: all), WORKERS (render workers per job; default: the cores divided
-# among the host's GPUs, at most 16).
+# stopped (an evaluation from its last finished condition); a job folder holding only agents/ (an
+# export of a finished run, e.g. copied from another machine) is imported and evaluated.
+# Environment: STEPS (override the paper's length, for a smoke test), TRAIN_ARGS and EVAL_ARGS
+# (extra flags), POOL_EVAL_ARGS (the pool evaluation's alone, e.g. "--egl-devices 0,1" to draw its
+# frames on two GPUs), SKIP_POOL=1 (ray-caster evaluation only), TRAIN_ONLY=1 (train and export
+# only; call again without it to evaluate), GPU_IDS (the GPUs to use, e.g. "2 3"; default: all),
+# WORKERS (render workers per job; default: the cores divided among the host's GPUs, at most 16).
 set -uo pipefail
 [ $# -ge 2 ] || { sed -n 2,9p "$0"; exit 2; }
 OUT=$1; shift
