@@ -44,7 +44,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import tempfile
 from typing import Any, Callable
 
 import jax
@@ -52,6 +51,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dmcr_jax import augment
+from dmcr_jax._files import write_atomic
 
 CHECK_TASKS: tuple[str, ...] = ("cartpole-balance", "walker-walk", "finger-spin")
 """Tasks whose renders `check` uses: a dark and two bright scenes, thin and wide bodies."""
@@ -215,11 +215,7 @@ def observations(size: int = 32) -> tuple[np.ndarray, np.ndarray]:
     with np.load(path) as f:
       return f["obs"], f["next_obs"]
   obs, next_obs = _render(size)
-  os.makedirs(os.path.dirname(path), exist_ok=True)
-  fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), suffix=".tmp.npz")
-  os.close(fd)
-  np.savez_compressed(tmp, obs=obs, next_obs=next_obs)
-  os.replace(tmp, path)
+  write_atomic(path, lambda f: np.savez_compressed(f, obs=obs, next_obs=next_obs))
   return obs, next_obs
 
 

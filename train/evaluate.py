@@ -58,6 +58,7 @@ import jax
 import numpy as np
 
 from dmcr_jax import SeedRange
+from dmcr_jax._files import write_atomic
 from dmcr_jax.checks import positive_int
 from dmcr_jax.env import default_frame_skip
 from dmcr_jax.train import loop, paper_results, sac
@@ -241,9 +242,7 @@ def save_progress(path: str, key: dict, done: dict, elapsed_s: float) -> None:
   meta = dict(key=key, walls={name: wall for name, (_, wall) in done.items()},
               elapsed_s=elapsed_s)
   arrays = {f"returns/{name}": returns for name, (returns, _) in done.items()}
-  tmp = path + ".tmp.npz"
-  np.savez(tmp, meta=json.dumps(meta), **arrays)
-  os.replace(tmp, path)
+  write_atomic(path, lambda f: np.savez(f, meta=json.dumps(meta), **arrays))
 
 
 def _is_default_look(train_look) -> bool:

@@ -39,6 +39,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from dmcr_jax._files import write_atomic
+
 VERSION = "dmcr-textures-v1"
 FLOOR_SIZE = 256
 BACKGROUND_SIZE = 192
@@ -993,19 +995,6 @@ def _bank_paths() -> tuple[pathlib.Path, pathlib.Path]:
   return d / "floors.npy", d / "backgrounds.npy"
 
 
-def _save_atomic(path: pathlib.Path, array: np.ndarray) -> None:
-  path.parent.mkdir(parents=True, exist_ok=True)
-  fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp.npy")
-  try:
-    with os.fdopen(fd, "wb") as f:
-      np.save(f, array)
-    os.replace(tmp, path)
-  except BaseException:
-    if os.path.exists(tmp):
-      os.unlink(tmp)
-    raise
-
-
 def _jobs(num_floors: int, num_backgrounds: int) -> list[tuple[str, int]]:
   # Backgrounds first (slowest), then floors, so workers finish together.
   return [("background", i) for i in range(num_backgrounds)] + [
@@ -1155,8 +1144,8 @@ def _procedural_cached(progress: bool) -> tuple[np.ndarray, np.ndarray]:
   except (OSError, ValueError):
     pass
   floors, bgs = build_procedural(progress=progress)
-  _save_atomic(fpath, floors)
-  _save_atomic(bpath, bgs)
+  write_atomic(fpath, lambda f: np.save(f, floors))
+  write_atomic(bpath, lambda f: np.save(f, bgs))
   return floors, bgs
 
 
