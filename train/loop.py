@@ -121,9 +121,8 @@ class TrainConfig:
     num_envs: envs per agent; each vector step stores N transitions per agent, and
       the updates owed for them (N·utd) run before the next. 32 by default: the
       step's fixed cost (act, frames, store, the host's turnaround) is spread
-      over more transitions. (The paper trained one env; learning at equal
-      transition counts against fewer envs, alike on cartpole and ball_in_cup but
-      not on finger-spin: benchmarks/results/num_envs_curves_h200.)
+      over more transitions. (The paper trained one env; learning curves at equal
+      transition counts against fewer envs: benchmarks/results/num_envs_curves_h200.)
     action_repeat: None = the paper's Table 4 value for the task.
     visual_seeds: an int (fixed look; 0 = dm_control's) or "levels:<n>[,<n>…]"
       (few-shot: every episode draws a look from seeds [0, n); several counts
