@@ -3,15 +3,17 @@
     python -m dmcr_jax.benchmarks.paper_table EVAL_JSON [EVAL_JSON ...] \\
         --out benchmarks/results/paper_table_h200.md
 
-Each EVAL_JSON is an `evaluate` output (``eval.json``). Its agents are grouped by
-task, paper method (`paper_results.method_name`) and renderer; a group's row is the
-mean over its agents (seeds) of the train return, each condition of the paper's
-table and E_G of "all" (computed from those means, as the paper does). Writes
-``--out`` (Markdown) and the same rows as JSON beside it:
+Each EVAL_JSON is an `evaluate` output (``eval.json``). The agents of all of them
+are grouped by task, paper method (`paper_results.method_name`) and renderer, so
+seeds trained and evaluated apart make one row (their files must share the
+protocol and not repeat a seed); a row is the mean over its agents (seeds) of the
+train return, each condition of the paper's table and E_G of "all" (computed from
+those means, as the paper does). Writes ``--out`` (Markdown) and the same rows as
+JSON beside it:
 
 - our row beside the paper's for every task and method (tasks in the order of the
   paper's training-length table), with the difference of "all";
-- what each row ran: seeds, training steps and action repeat (against the
+- what each file's agents ran: seeds, training steps and action repeat (against the
   paper's), the protocol (held-out looks × initial states, train episodes,
   render quality), training wall time and devices (from the run's summary.json,
   when the agents came with it), evaluation wall time and device, and its file;
@@ -43,7 +45,8 @@ WANTED = tuple((task, "SAC+AUG") for task in TRAINING_STEPS) + (
 
 
 def rows_of(result: dict, source: str) -> list[dict]:
-  """One row per (method, renderer) group of an `evaluate` result's agents."""
+  """One run per (method, renderer) group of an `evaluate` result's agents: their
+  means and what they ran (`merge` pools the runs of one row across files)."""
   groups: dict[str, list[dict]] = {}
   for agent in result["agents"]:
     algo = agent.get("algo", "sac_aug")  # (results before evaluate recorded it: SAC+AUG)
@@ -77,8 +80,17 @@ def rows_of(result: dict, source: str) -> list[dict]:
   return rows
 
 
+def _sort_key(row: dict):
+  """The paper's task order, then its method order, then the renderer."""
+  order = {task: i for i, task in enumerate(TRAINING_STEPS)}
+  methods = {m: i for i, m in enumerate(paper_results.METHODS)}
+  return (order.get(row["task"], len(order)), row["task"],
+          methods.get(row["method"], len(methods)), row["renderer"])
+
+
 def collect(paths: list[str]) -> list[dict]:
-  """The rows of every `evaluate` JSON in `paths`, in the paper's task order.
+  """The runs (`rows_of`) of every `evaluate` JSON in `paths`, in the paper's task
+  order; `merge` makes the table's rows of them.
 
   Raises:
     ValueError: a path that is not an `evaluate` result.
@@ -93,10 +105,50 @@ def collect(paths: list[str]) -> list[dict]:
     if not isinstance(result, dict) or not {"task", "agents"} <= set(result):
       raise ValueError(f"{path}: not an evaluate result (eval.json): no task and agents")
     rows.extend(rows_of(result, path))
-  order = {task: i for i, task in enumerate(TRAINING_STEPS)}
-  methods = {m: i for i, m in enumerate(paper_results.METHODS)}
-  return sorted(rows, key=lambda r: (order.get(r["task"], len(order)), r["task"],
-                                     methods.get(r["method"], len(methods)), r["renderer"]))
+  return sorted(rows, key=_sort_key)
+
+
+def merge(runs: list[dict]) -> list[dict]:
+  """The table's rows: one per (task, method, renderer), pooling its runs' seeds.
+
+  A row's train return and conditions are means over all its seeds, E_G of "all"
+  is computed from those means, and `sources` lists its files.
+
+  Raises:
+    ValueError: runs of one row with different protocols, or a seed in two of them.
+  """
+  rows: dict[tuple, dict] = {}
+  for run in runs:
+    key = (run["task"], run["method"], run["renderer"])
+    row = rows.get(key)
+    if row is None:
+      rows[key] = dict(task=run["task"], method=run["method"], renderer=run["renderer"],
+                       protocol=run["protocol"], by_seed=dict(run["by_seed"]),
+                       sources=[run["source"]])
+      continue
+    name = f"{run['task']} {run['method']} ({run['renderer']})"
+    if run["protocol"] != row["protocol"]:
+      raise ValueError(f"{name}: {run['source']} was evaluated with another protocol than "
+                       f"{', '.join(row['sources'])} ({run['protocol']} against "
+                       f"{row['protocol']}); one row needs one protocol")
+    both = sorted(set(run["by_seed"]) & set(row["by_seed"]))
+    if both:
+      raise ValueError(f"{name}: seed {', '.join(map(str, both))} is in {run['source']} and "
+                       f"in {', '.join(row['sources'])}; pass one evaluation per seed")
+    row["by_seed"].update(run["by_seed"])
+    row["sources"].append(run["source"])
+  out = []
+  for row in rows.values():
+    seeds = sorted(row["by_seed"])
+    per_seed = [row["by_seed"][s] for s in seeds]
+    train = float(np.mean([p["train"] for p in per_seed]))
+    conditions = {c: float(np.mean([p["conditions"][c] for p in per_seed]))
+                  for c in paper_results.COLUMNS
+                  if all(c in p["conditions"] for p in per_seed)}
+    all_ = conditions.get("all")
+    out.append(dict(row, seeds=seeds, train=train, conditions=conditions,
+                    e_g_all=None if all_ is None or train == 0 else (train - all_) / train))
+  return sorted(out, key=_sort_key)
 
 
 def missing(rows: list[dict]) -> list[tuple[str, str]]:
@@ -109,9 +161,14 @@ def _num(v, digits=1) -> str:
   return "–" if v is None else f"{v:,.{digits}f}"
 
 
-def markdown(rows: list[dict]) -> str:
-  """The four parts of the module docstring as Markdown."""
+def markdown(runs: list[dict]) -> str:
+  """The four parts of the module docstring as Markdown, from `collect`'s runs.
+
+  Raises:
+    ValueError: as `merge`.
+  """
   cols = paper_results.COLUMNS
+  rows = merge(runs)
   out = ["| task | method | renderer | seeds | train | " + " | ".join(cols)
          + " | E_G (all) | all − paper |", "|---|---|---|---:|---:|" + "---:|" * len(cols)
          + "---:|---:|"]
@@ -132,7 +189,7 @@ def markdown(rows: list[dict]) -> str:
           "| task | method | renderer | seeds | steps (paper) | action repeat (paper) | "
           "protocol | training wall s | trained on | evaluation wall s | evaluated on | file |",
           "|---|---|---|---|---|---|---|---:|---|---:|---|---|"]
-  for r in rows:
+  for r in runs:
     steps, repeat = TRAINING_STEPS.get(r["task"]), ACTION_REPEAT.get(r["task"])
     p = r["protocol"]
     protocol = (f"{p['visual_seeds']} × {p['dynamics_seeds']}, train {p['train_episodes']}, "
@@ -176,10 +233,11 @@ def main(argv=None) -> None:
                  help="Markdown path (its .json beside it; default: print only)")
   a = p.parse_args(argv)
   try:
-    rows = collect(a.results)
+    runs = collect(a.results)
+    rows = merge(runs)
   except ValueError as e:
     p.error(str(e))
-  table = markdown(rows)
+  table = markdown(runs)
   print(table, end="")
   if a.out:
     os.makedirs(os.path.dirname(a.out) or ".", exist_ok=True)
@@ -187,7 +245,7 @@ def main(argv=None) -> None:
       f.write("Our rows beside the DMCR paper's (`python -m dmcr_jax.benchmarks.paper_table "
               + " ".join(a.results) + "`).\n\n" + table)
     with open(os.path.splitext(a.out)[0] + ".json", "w") as f:
-      json.dump(dict(rows=rows, missing=missing(rows)), f, indent=1)
+      json.dump(dict(rows=rows, runs=runs, missing=missing(rows)), f, indent=1)
 
 
 if __name__ == "__main__":

@@ -106,3 +106,38 @@ def test_ray_caster_minus_pool_uses_only_the_seeds_evaluated_with_both(tmp_path)
   text = paper_table.markdown(paper_table.collect([pool, ray]))
   # Seed 1 (jax only) would pull the means far down; the difference is seed 0's alone.
   assert "| ball_in_cup-catch | SAC+AUG | 0 | 10.0 | " + " | ".join(["30.0"] * len(COLS)) + " |" in text
+
+
+def test_seeds_evaluated_apart_make_one_row_and_each_file_its_own_line(tmp_path):
+  one = eval_json(tmp_path / "s0.json", "finger-spin", [(0, "drq", 600.0, returns(500.0))],
+                  training=dict(wall_s=435.0, devices=["GPU X"]))
+  two = eval_json(tmp_path / "s12.json", "finger-spin",
+                  [(1, "drq", 900.0, returns(800.0)), (2, "drq", 930.0, returns(830.0))],
+                  training=dict(wall_s=700.0, devices=["GPU Y"]))
+  [row] = paper_table.merge(paper_table.collect([one, two]))
+  assert row["seeds"] == [0, 1, 2] and row["sources"] == [one, two]
+  assert row["train"] == pytest.approx(810.0)
+  assert row["conditions"]["all"] == pytest.approx(np.mean([500.0, 800.0, 830.0]) - 10 * COLS.index("all"))
+  assert row["e_g_all"] == pytest.approx((810.0 - row["conditions"]["all"]) / 810.0)
+  text = paper_table.markdown(paper_table.collect([one, two]))
+  assert "| finger-spin | SAC+AUG | pool | 3 | 810.0 |" in text
+  # What each file ran stays apart: its seeds, wall time, device and name.
+  assert f"| 0 | 250,000 (100,000) |" in text and "| 435 | GPU X |" in text and f"`{one}`" in text
+  assert f"| 1, 2 | 250,000 (100,000) |" in text and "| 700 | GPU Y |" in text and f"`{two}`" in text
+
+
+def test_files_that_cannot_make_one_row_are_refused_by_name(tmp_path, capsys):
+  one = eval_json(tmp_path / "a.json", "finger-spin", [(0, "drq", 600.0, returns(500.0))])
+  again = eval_json(tmp_path / "b.json", "finger-spin",
+                    [(0, "drq", 610.0, returns(500.0)), (1, "drq", 900.0, returns(800.0))])
+  with pytest.raises(SystemExit):
+    paper_table.main([one, again])
+  err = capsys.readouterr().err
+  assert "seed 0 is in" in err and "a.json" in err and "b.json" in err
+  other = tmp_path / "c.json"
+  result = json.loads((tmp_path / "a.json").read_text())
+  result["config"]["visual_seeds"] = 10
+  result["agents"][0]["seed"] = 5
+  other.write_text(json.dumps(result))
+  with pytest.raises(ValueError, match="another protocol"):
+    paper_table.merge(paper_table.collect([one, str(other)]))
