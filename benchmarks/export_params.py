@@ -24,23 +24,29 @@ import flax.serialization
 import jax
 import jax.numpy as jnp
 
+from dmcr_jax._files import write_atomic
 from dmcr_jax.train import loop
 
 
 def export(run_dir: str, dest: str) -> int:
-  """Writes the run's config.json (and summary.json, if any) and agent<i>.msgpack
-  files; returns the count."""
+  """Writes the run's agent<i>.msgpack files, then its summary.json (if any) and
+  config.json; returns the count.
+
+  Each file is written whole or not at all, and config.json last: a `dest`
+  holding config.json holds every agent (what `benchmarks/paper_runs.sh` checks).
+  """
   _, agents, step = loop.load_run(run_dir)
-  os.makedirs(dest, exist_ok=True)
-  for name in ("config.json", "summary.json"):
-    if os.path.exists(os.path.join(run_dir, name)):
-      shutil.copy(os.path.join(run_dir, name), os.path.join(dest, name))
   k = agents.step.shape[0]
   for i in range(k):
     params = jax.tree.map(lambda x, i=i: x[i], agents.params)
-    with open(os.path.join(dest, f"agent{i}.msgpack"), "wb") as f:
-      f.write(flax.serialization.to_bytes({"encoder": params["encoder"],
-                                           "actor": params["actor"], "step": step}))
+    data = flax.serialization.to_bytes({"encoder": params["encoder"],
+                                        "actor": params["actor"], "step": step})
+    write_atomic(os.path.join(dest, f"agent{i}.msgpack"), lambda f, data=data: f.write(data))
+  for name in ("summary.json", "config.json"):
+    if os.path.exists(os.path.join(run_dir, name)):
+      with open(os.path.join(run_dir, name), "rb") as src:
+        data = src.read()
+      write_atomic(os.path.join(dest, name), lambda f, data=data: f.write(data))
   return k
 
 

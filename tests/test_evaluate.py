@@ -375,3 +375,20 @@ def test_exported_agents_carry_how_they_trained_to_the_evaluation(run_dir, tmp_p
     jax.tree.map(np.testing.assert_array_equal, got.params[name], want.params[name])
   assert ev.training_record(str(source)) == ev.training_record(ev_dir)
   assert ev.training_record(str(tmp_path)) is None
+
+
+def test_an_export_cut_short_leaves_no_config_so_it_is_not_taken_for_done(run_dir, tmp_path,
+                                                                           monkeypatch):
+  from dmcr_jax.benchmarks import export_params
+  real, calls = export_params.flax.serialization.to_bytes, []
+  def dies_on_the_second_agent(tree):
+    calls.append(1)
+    if len(calls) == 2:
+      raise KeyboardInterrupt  # the machine taken back mid-export
+    return real(tree)
+  monkeypatch.setattr(export_params.flax.serialization, "to_bytes", dies_on_the_second_agent)
+  dest = tmp_path / "files"
+  with pytest.raises(KeyboardInterrupt):
+    export_params.export(run_dir, str(dest))
+  # paper_runs.sh takes agents/config.json for a finished export.
+  assert sorted(os.listdir(dest)) == ["agent0.msgpack"]
