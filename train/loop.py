@@ -116,8 +116,11 @@ class TrainConfig:
   Attributes:
     task: a DMCR task, e.g. "cartpole-balance".
     steps: training steps (transitions) per agent (the paper's Sec. 4 and Table 4).
-    seeds: one agent per seed (network init, exploration, dynamics) and per
-      augmentation in `sac.aug`.
+    seeds: one agent per seed and per augmentation in `sac.aug`. An agent's seed
+      fixes its network initialisation; exploration, updates and the envs'
+      initial states draw from one run key made from the first seed and split
+      over the run's agents, so an agent trained beside others is another sample
+      than the one its seed gives trained alone.
     num_envs: envs per agent; each vector step stores N transitions per agent, and
       the updates owed for them (N·utd) run before the next. 32 by default: the
       step's fixed cost (act, frames, store, the host's turnaround) is spread
