@@ -465,6 +465,16 @@ def _save(manager, step: int, agents, key) -> None:
   manager.wait_until_finished()
 
 
+def _uncommitted(tree):
+  """`tree`'s arrays as fresh ones are: on the default device and uncommitted.
+
+  Orbax restores arrays committed to a device; a jitted function given committed
+  arguments lowers to another program (each input carries its sharding) than the
+  one fresh agents compiled, so a resumed run would miss the compilation cache and
+  compile its learner again."""
+  return jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), tree)
+
+
 def _restore(manager, agents, key):
   import orbax.checkpoint as ocp
   step = manager.latest_step()
@@ -472,7 +482,7 @@ def _restore(manager, agents, key):
     return None
   like = {"agents": agents, "key": jax.random.key_data(key),
           "step": np.asarray(0, np.int64)}
-  state = manager.restore(step, args=ocp.args.StandardRestore(like))
+  state = _uncommitted(manager.restore(step, args=ocp.args.StandardRestore(like)))
   return state["agents"], jax.random.wrap_key_data(state["key"]), int(state["step"])
 
 
@@ -541,7 +551,7 @@ def load_run(out_dir: str, step: int | None = None):
   step = manager.latest_step() if step is None else step
   if step is None:
     raise FileNotFoundError(f"no checkpoint in {out_dir}/checkpoints")
-  state = manager.restore(step, args=ocp.args.StandardRestore(like))
+  state = _uncommitted(manager.restore(step, args=ocp.args.StandardRestore(like)))
   return cfg, state["agents"], int(state["step"])
 
 
