@@ -122,8 +122,8 @@ def test_seeds_evaluated_apart_make_one_row_and_each_file_its_own_line(tmp_path)
   text = paper_table.markdown(paper_table.collect([one, two]))
   assert "| finger-spin | SAC+AUG | pool | 3 | 810.0 |" in text
   # What each file ran stays apart: its seeds, wall time, device and name.
-  assert f"| 0 | 250,000 (100,000) |" in text and "| 435 | GPU X |" in text and f"`{one}`" in text
-  assert f"| 1, 2 | 250,000 (100,000) |" in text and "| 700 | GPU Y |" in text and f"`{two}`" in text
+  assert "| 0 | 250,000 (100,000) |" in text and "| 435 | GPU X |" in text and f"`{one}`" in text
+  assert "| 1, 2 | 250,000 (100,000) |" in text and "| 700 | GPU Y |" in text and f"`{two}`" in text
 
 
 def test_files_that_cannot_make_one_row_are_refused_by_name(tmp_path, capsys):
