@@ -44,6 +44,19 @@ WANTED = tuple((task, "SAC+AUG") for task in TRAINING_STEPS) + (
 """The (task, method) rows the table is to hold, evaluated with the pool."""
 
 
+def seed_means(by_seed: dict) -> dict:
+  """seeds, and the means over them of the train return and of each condition all
+  of them have, with E_G of "all" computed from those means (as the paper does)."""
+  seeds = sorted(by_seed)
+  per_seed = [by_seed[s] for s in seeds]
+  train = float(np.mean([p["train"] for p in per_seed]))
+  conditions = {c: float(np.mean([p["conditions"][c] for p in per_seed]))
+                for c in paper_results.COLUMNS if all(c in p["conditions"] for p in per_seed)}
+  all_ = conditions.get("all")
+  return dict(seeds=seeds, train=train, conditions=conditions,
+              e_g_all=None if all_ is None or train == 0 else (train - all_) / train)
+
+
 def rows_of(result: dict, source: str) -> list[dict]:
   """One run per (method, renderer) group of an `evaluate` result's agents: their
   means and what they ran (`merge` pools the runs of one row across files)."""
@@ -57,17 +70,13 @@ def rows_of(result: dict, source: str) -> list[dict]:
   training = result.get("training") or {}
   rows = []
   for method, agents in groups.items():
-    train = float(np.mean([a["train"]["mean"] for a in agents]))
-    conditions = {c: float(np.mean([a["conditions"][c]["mean"] for a in agents]))
-                  for c in paper_results.COLUMNS if c in agents[0]["conditions"]}
-    all_ = conditions.get("all")
+    columns = [c for c in paper_results.COLUMNS if c in agents[0]["conditions"]]
+    by_seed = {a["seed"]: dict(train=a["train"]["mean"],
+                               conditions={c: a["conditions"][c]["mean"] for c in columns})
+               for a in agents}
     rows.append(dict(
         task=result["task"], method=method, renderer=config.get("renderer", "pool"),
-        seeds=sorted(a["seed"] for a in agents), train=train, conditions=conditions,
-        by_seed={a["seed"]: dict(train=a["train"]["mean"],
-                                 conditions={c: a["conditions"][c]["mean"] for c in conditions})
-                 for a in agents},
-        e_g_all=None if all_ is None or train == 0 else (train - all_) / train,
+        by_seed=by_seed, **seed_means(by_seed),
         steps=result.get("checkpoint_step"),
         action_repeat=result.get("action_repeat") or default_frame_skip(result["task"]),
         protocol=dict(visual_seeds=config.get("visual_seeds"),
@@ -137,18 +146,8 @@ def merge(runs: list[dict]) -> list[dict]:
                        f"in {', '.join(row['sources'])}; pass one evaluation per seed")
     row["by_seed"].update(run["by_seed"])
     row["sources"].append(run["source"])
-  out = []
-  for row in rows.values():
-    seeds = sorted(row["by_seed"])
-    per_seed = [row["by_seed"][s] for s in seeds]
-    train = float(np.mean([p["train"] for p in per_seed]))
-    conditions = {c: float(np.mean([p["conditions"][c] for p in per_seed]))
-                  for c in paper_results.COLUMNS
-                  if all(c in p["conditions"] for p in per_seed)}
-    all_ = conditions.get("all")
-    out.append(dict(row, seeds=seeds, train=train, conditions=conditions,
-                    e_g_all=None if all_ is None or train == 0 else (train - all_) / train))
-  return sorted(out, key=_sort_key)
+  return sorted((dict(row, **seed_means(row["by_seed"])) for row in rows.values()),
+                key=_sort_key)
 
 
 def missing(rows: list[dict]) -> list[tuple[str, str]]:
