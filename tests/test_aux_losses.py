@@ -15,8 +15,9 @@ import numpy as np
 import pytest
 
 from dmcr_jax.train import curl, loop, sac, sac_ae
-from dmcr_jax.train.networks import (Decoder, StrideTwoConv, StrideTwoConvTranspose, center_crop,
-                            encoder_sides)
+from dmcr_jax.train.networks import (Decoder, StrideTwoConv, StrideTwoConvTranspose,
+                                     block_channel_multiple, center_crop, encoder_sides,
+                                     stride_two_blocks)
 
 pytestmark = pytest.mark.xdist_group("aux_losses")
 
@@ -325,6 +326,15 @@ def test_block_first_layer_is_the_strided_conv():
   for case, (params, x, _) in zip(cases, inputs):
     half = StrideTwoConv(case[3], dtype="bfloat16")
     assert jax.eval_shape(half.apply, params, x).dtype == jnp.bfloat16, case
+  # Blocks padded to 64 channels (16-bit inputs on GPUs) convolve the same.
+  assert [block_channel_multiple(dtype, platform) for dtype, platform in
+          (("bfloat16", "gpu"), ("float32", "gpu"), ("bfloat16", "cpu"))] == [32, 8, 8]
+  (params, x, _), c_out = inputs[0], cases[0][3]
+  blocks = stride_two_blocks(x, channel_multiple=32)
+  assert blocks.data.shape[-1] == 64
+  expect = nn.Conv(c_out, (3, 3), strides=(2, 2), padding="VALID").apply(params, x)
+  np.testing.assert_allclose(StrideTwoConv(c_out).apply(params, blocks), expect, rtol=1e-5,
+                             atol=1e-5 * np.abs(expect).max())
   # The same key initialises it as it did nn.Conv, under the encoder's name.
   x = jnp.zeros((1, 84, 84, 9))
   got, expect = jax.jit(lambda key: (

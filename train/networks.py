@@ -92,25 +92,28 @@ class Blocks:
 
   Attributes:
     data: (B, (H − 3)//2 + 2, (W − 3)//2 + 2, 4·C rounded up to a multiple of
-      `BLOCK_CHANNEL_MULTIPLE`): `space_to_depth` of the image, zero channels last.
+      `block_channel_multiple`): `space_to_depth` of the image, zero channels last.
     channels: C, the channels of the image (static; the kernel's input channels).
   """
   data: jax.Array
   channels: int = flax.struct.field(pytree_node=False)
 
 
-def stride_two_blocks(x: jax.Array) -> Blocks:
+def stride_two_blocks(x: jax.Array, channel_multiple: int | None = None) -> Blocks:
   """The blocks `StrideTwoConv` convolves, for (B, H, W, C) images (H, W ≥ 3).
 
   `space_to_depth` to (out_h + 1, out_w + 1) blocks (out = (side − 3)//2 + 1,
   the convolution's output side), zero channels appended up to a multiple of
-  `BLOCK_CHANNEL_MULTIPLE`; the dtype is kept.
+  `channel_multiple` (default: `block_channel_multiple` of x's dtype); the dtype
+  is kept. Zero channels meet zero kernel rows: the convolution is unchanged.
   """
   if x.ndim != 4 or min(x.shape[1:3]) < 3:
     raise ValueError(f"expected (B, H, W, C) inputs with H, W ≥ 3, got shape {x.shape}")
+  if channel_multiple is None:
+    channel_multiple = block_channel_multiple(x.dtype)
   out_h, out_w = (x.shape[1] - 3) // 2 + 1, (x.shape[2] - 3) // 2 + 1
   blocks = space_to_depth(x, 2 * (out_h + 1), 2 * (out_w + 1))
-  extra = -blocks.shape[-1] % BLOCK_CHANNEL_MULTIPLE  # zero channels: the same sums
+  extra = -blocks.shape[-1] % channel_multiple
   if extra:
     blocks = jnp.pad(blocks, ((0, 0), (0, 0), (0, 0), (0, extra)))
   return Blocks(blocks, x.shape[-1])
@@ -184,9 +187,20 @@ def space_to_depth(x: jax.Array, height: int, width: int) -> jax.Array:
   return blocks.reshape(b, height // 2, width // 2, 4 * c)
 
 
-BLOCK_CHANNEL_MULTIPLE = 8
-"""`StrideTwoConv` pads its block channels with zeros to a multiple of this (the
-channel multiple cuDNN's tensor-core kernels want for 16-bit inputs)."""
+def block_channel_multiple(dtype, platform: str | None = None) -> int:
+  """The multiple `stride_two_blocks` pads the block channels to, with zero channels.
+
+  Args:
+    dtype: the blocks' dtype (the encoder's compute dtype).
+    platform: the backend the convolution runs on (default: JAX's default backend).
+
+  Returns:
+    32 for 16-bit floats on GPUs: cuDNN's tensor-core kernels run the first layer
+    on 64 channels faster than on 40 (benchmarks/results/training_h200.md, eleventh
+    section); 8 otherwise, the channel multiple those kernels need.
+  """
+  platform = platform or jax.default_backend()
+  return 32 if platform == "gpu" and jnp.dtype(dtype).itemsize == 2 else 8
 
 
 def _conv3x3_params(module: nn.Module, x: jax.Array):
@@ -214,7 +228,7 @@ class StrideTwoConv(nn.Module):
   blocks (`space_to_depth`) and K'[p] = (K[2p], K[2p + 1]): a 2×2 stride-1
   convolution over 4·C_in channels (`space_to_depth_kernel`). Why: the encoder's
   first layer sees 9 input channels, for which cuDNN picks a generic, slow kernel on
-  GPUs; 36 channels, padded with zero channels to `BLOCK_CHANNEL_MULTIPLE`, go to
+  GPUs; 36 channels, padded with zero channels (`block_channel_multiple`), go to
   its tensor-core kernels (profiles: benchmarks/results/learner_h100.md).
 
   Attributes:
