@@ -19,8 +19,9 @@ pytestmark = pytest.mark.xdist_group("train")
 # Pendulum at action repeat 100 (10 agent steps per episode), tiny networks: the
 # files and the refusal do not depend on the task (the default, cartpole, is the
 # full test's); pendulum's env, with the fewest bodies to step and ray-cast,
-# compiles fastest.
-TINY = dm.Demo(task="pendulum-swingup", steps=24, num_envs=2, train_looks=2, image_size=16,
+# compiles fastest. Six training looks: the training env is test_jax_env's (2 envs,
+# levels:6), whose step test_train's host driver shares.
+TINY = dm.Demo(task="pendulum-swingup", steps=24, num_envs=2, train_looks=6, image_size=16,
                action_repeat=100, warmup_steps=8, eval_looks=2, eval_states=1,
                sac=sac.SACConfig(batch_size=8, conv_channels=4, feature_dim=8, hidden_dim=16))
 
@@ -71,10 +72,11 @@ def test_demo_writes_its_files_and_refuses_to_overwrite_them(tmp_path, capsys):
                         "per-factor table", "eval.png", "eval.json"}
   for path in files.values():
     assert os.path.getsize(path) > 0, path
-  # Two rows of tiles: the training looks, then as many held-out looks.
+  # Two rows of tiles: the training looks, then as many held-out looks (here the
+  # evaluation's two).
   grid = iio.imread(files["visual seeds"])
   tile = dm.GRID_TILE
-  assert grid.shape == (2 * (tile + 2) + 2, 2 * (tile + 2) + 2, 3)
+  assert grid.shape == (2 * (tile + 2) + 2, 6 * (tile + 2) + 2, 3)
   with open(files["eval.json"]) as f:
     ev = json.load(f)
   assert ev["conditions"] == ["none", "light", "camera", "body", "floor", "background",
@@ -82,7 +84,7 @@ def test_demo_writes_its_files_and_refuses_to_overwrite_them(tmp_path, capsys):
   agent = ev["agents"][0]
   assert len(agent["train"]["episodes"]) == 2
   assert all(len(agent["conditions"][c]["episodes"]) == 2 for c in ev["conditions"])
-  assert ev["train_look"] == "levels:2" and ev["checkpoint_step"] == 24
+  assert ev["train_look"] == "levels:6" and ev["checkpoint_step"] == 24
   with open(files["per-factor table"]) as f:
     assert "| seed 0, drq |" in f.read()
   assert result["train"]["steps"] == 24 and result["last_return"] is not None

@@ -4,7 +4,7 @@ range (both renderers), a seed's look is the same in every range, bad specs are 
 before anything is built, and `evaluate` draws the generalisation curve.
 
 Tiny sizes: pendulum / cartpole at action repeat 100 (10 agent steps per episode),
-16 px frames, 2 envs per agent.
+16 px frames, 1 or 2 envs per agent.
 """
 
 import csv
@@ -25,7 +25,8 @@ from dmcr_jax.train.__main__ import parse
 
 # One worker runs the module, so its module-scoped training run is made once; with
 # test_evaluate (group "train"), whose protocol env and policy its evaluation shares
-# (cartpole, two agents of four envs each, the same networks).
+# (cartpole, two agents of four envs each, the same networks), and test_train, whose
+# interrupted run trains learners of the training run's sizes (two agents of one env).
 pytestmark = pytest.mark.xdist_group("train")
 
 TINY = sac.SACConfig(batch_size=8, conv_channels=4, feature_dim=8, hidden_dim=16)
@@ -134,10 +135,10 @@ def test_a_seeds_look_is_the_same_in_every_range_and_batch():
 @pytest.fixture(scope="module")
 def levels_run(tmp_path_factory):
   """A tiny `train` run (host driver, pool renderer) of two agents: levels:1 and
-  levels:2."""
+  levels:2, one env each (test_train's interrupted run's learner sizes)."""
   out = str(tmp_path_factory.mktemp("levels"))
-  cfg = loop.TrainConfig(task="cartpole-balance", visual_seeds="levels:1,2", steps=44,
-                         checkpoint_every=0, out_dir=out, **SMALL)
+  cfg = loop.TrainConfig(task="cartpole-balance", visual_seeds="levels:1,2", steps=22,
+                         checkpoint_every=0, out_dir=out, **{**SMALL, "num_envs": 1})
   summary = loop.train(cfg, progress=False)
   return out, summary
 

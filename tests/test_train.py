@@ -59,7 +59,7 @@ def test_defaults_follow_the_paper():
 
 
 def demo_run(out, **changes) -> loop.TrainConfig:
-  """test_demo's training run (tiny pendulum, 2 envs, the JAX renderer, levels:2) into
+  """test_demo's training run (tiny pendulum, 2 envs, the JAX renderer, levels:6) into
   `out`, with `changes`: sized alike, the runs share their compilations."""
   from tests.test_demo import TINY as DEMO
   return dataclasses.replace(DEMO.train_config(str(out)), out_dir=str(out), **changes)
