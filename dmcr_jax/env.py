@@ -177,18 +177,17 @@ def _seed_source(visual_seeds, num_envs: int) -> SeedRange | EnvRanges | np.ndar
 
 
 @functools.lru_cache(maxsize=64)
-def _physics_fns(task, num_envs: int, frame_skip: int,
-                 seed_range: SeedRange | EnvRanges | None, donate: bool):
+def _physics_fns(task, num_envs: int, frame_skip: int, donate: bool):
   """Jitted (init, step) for N envs of `task`, shared by every env built alike.
 
   `models.load` returns one `Task` object per name and solver budget, so envs
-  with the same task, size, frame skip and seed kind reuse one compilation (an
-  evaluation's or a test's second env compiles nothing). Fixed visual seeds are
-  the functions' last argument; a `SeedRange` or `EnvRanges` (seed_range) is static.
+  with the same task, size and frame skip reuse one compilation (an evaluation's
+  or a test's second env compiles nothing). The visual seeds are the functions'
+  last argument (`physics_env.seed_argument`): fixed seeds compile once, ranges
+  (`SeedBounds`) once, whatever their values.
   """
-  pick = (lambda arg: arg) if seed_range is None else (lambda arg: seed_range)
-  init = physics_jit(lambda key, arg: physics_env.init(task, pick(arg), key, num_envs))
-  step = physics_jit(lambda es, a, arg: physics_env.step(task, pick(arg), frame_skip, es, a),
+  init = physics_jit(lambda key, seeds: physics_env.init(task, seeds, key, num_envs))
+  step = physics_jit(lambda es, a, seeds: physics_env.step(task, seeds, frame_skip, es, a),
                      donate_argnums=(0,) if donate else ())
   return init, step
 
@@ -273,9 +272,10 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     self.reset_timings()
 
   def _use_physics(self) -> None:
-    """Points `_init`/`_step` at the current seed source. Fixed seeds are a traced
-    argument (one compilation serves any of them); a range is static (with
-    physics workers, a new range starts new workers)."""
+    """Points `_init`/`_step` at the current seed source. In process, the seeds are
+    a traced argument (fixed seeds, or ranges as `SeedBounds`: one compilation
+    serves any of them); with physics workers a range is static (a new range
+    starts new workers)."""
     fixed = not isinstance(self.seeds, (SeedRange, EnvRanges))
     seed_range = None if fixed else self.seeds
     if self.physics_workers:
@@ -288,8 +288,8 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
       self._seed_arg = np.asarray(self.seeds, np.int32) if fixed else None
       return
     self._init, self._step = _physics_fns(self.task, self.num_envs, self.frame_skip,
-                                          seed_range, self._physics_on.platform != "cpu")
-    self._seed_arg = self._on_physics(np.asarray(self.seeds, np.int32)) if fixed else None
+                                          self._physics_on.platform != "cpu")
+    self._seed_arg = self._on_physics(physics_env.seed_argument(self.seeds, self.num_envs))
 
   def _close_physics(self) -> None:
     """Stops the physics workers, if any (idempotent)."""
@@ -305,9 +305,10 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
   def set_visuals(self, visual_seeds: Any, vary: str | Sequence[str] | None = None) -> None:
     """Changes the looks: new visual seeds (and optionally `vary`) for every env.
 
-    The physics is not recompiled when fixed seeds replace fixed seeds (they are
-    an argument of the jitted step), so an evaluation can sweep many visual
-    conditions with one env. The running episodes end: call `reset` next.
+    The physics is not recompiled when fixed seeds replace fixed seeds, or ranges
+    replace ranges (the seeds are an argument of the jitted step), so an
+    evaluation can sweep many visual conditions with one env. The running
+    episodes end: call `reset` next.
 
     Args:
       visual_seeds: as for `make` (one int, one per env, a `SeedRange`, or one

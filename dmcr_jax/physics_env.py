@@ -22,13 +22,26 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from dmcr_jax.models.base import State, Task
-from dmcr_jax.visuals.levels import EnvRanges, SeedRange
+from dmcr_jax.visuals.levels import EnvRanges, SeedBounds, SeedRange
 
-SeedSource = SeedRange | EnvRanges | jax.Array
-"""A range to draw from, a range per env, or a fixed int32 (N,) seed per env."""
+SeedSource = SeedRange | EnvRanges | SeedBounds | jax.Array
+"""A range to draw from, a range per env (static, or as `SeedBounds` arrays), or a
+fixed int32 (N,) seed per env."""
+
+
+def seed_argument(seeds: SeedRange | EnvRanges | jax.Array, num_envs: int
+                  ) -> SeedBounds | jax.Array:
+  """`seeds` as the traced argument of a jitted `init`/`step`: ranges as
+  `SeedBounds`, fixed seeds as int32 (N,). One compilation then serves every
+  range (and one every set of fixed seeds) of `num_envs` envs; the draws are
+  those of the static `seeds`."""
+  if isinstance(seeds, (SeedRange, EnvRanges)):
+    return SeedBounds.of(seeds, num_envs)
+  return np.asarray(seeds, np.int32)
 
 
 @struct.dataclass
@@ -58,7 +71,7 @@ def _reset_one(task: Task, seeds: SeedSource, key: jax.Array, index: jax.Array):
   key, k_dyn, k_vis = jax.random.split(key, 3)
   if isinstance(seeds, SeedRange):
     seed = seeds.sample(k_vis)
-  elif isinstance(seeds, EnvRanges):
+  elif isinstance(seeds, (EnvRanges, SeedBounds)):
     seed = seeds.sample(k_vis, index)
   else:
     seed = seeds[index]
@@ -124,8 +137,8 @@ def step(task: Task, seeds: SeedSource, frame_skip: int, es: EnvState,
 
   Args:
     task: the `Task`.
-    seeds: a `SeedRange` to draw each new episode's visual seed from, or fixed
-      int32 (N,) seeds.
+    seeds: a `SeedSource`: the range(s) to draw each new episode's visual seed
+      from, or fixed int32 (N,) seeds.
     frame_skip: control steps per agent step.
     es: the current `EnvState`.
     actions: float (N, action_size).

@@ -5,8 +5,9 @@ Tiers: `pytest -m "not slow"` skips the tests marked slow (each over ~7 s on a
 runs every test. Tests marked full run a whole command at its defaults and only
 with `--run-full`. One JAX compilation cache serves the whole session
 (`share_compilations`); XLA's CPU backend compiles with its faster-compiling
-emitters (`compile_faster`) and Python's cyclic garbage collector runs less often
-(`collect_less`): most of the suite's time is tracing and compiling."""
+emitters and without LLVM's optimisation passes (`compile_faster`), and Python's
+cyclic garbage collector runs less often (`collect_less`): most of the suite's
+time is tracing and compiling."""
 
 import atexit
 import gc
@@ -44,31 +45,42 @@ def share_compilations() -> None:
 
 share_compilations()
 
-FAST_COMPILE_FLAG = "--xla_cpu_use_fusion_emitters=false"
+FAST_COMPILE_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimization_level=0")
 
 
 def compile_faster() -> None:
-  """Adds `FAST_COMPILE_FLAG` to `XLA_FLAGS` (inherited by xdist workers and
-  subprocesses), unless XLA_FLAGS names that flag already or DMCR_TESTS_XLA_DEFAULTS
-  is set (then the suite compiles as a user's program does).
+  """Adds `FAST_COMPILE_FLAGS` to `XLA_FLAGS` (inherited by xdist workers and
+  subprocesses), each unless XLA_FLAGS names its option already; none when
+  DMCR_TESTS_XLA_DEFAULTS is set (then the suite compiles as a user's program does).
 
-  XLA:CPU then emits its fused elementwise loops with the older LLVM IR emitters
-  instead of the MLIR fusion emitters, which compile the MJX physics, the ray
-  caster and the learner in markedly less time and run them as fast (measured in
-  the commit that added this). Results may differ from the default's in the last bits
-  of float32 (another instruction order, e.g. where a multiply-add is fused); every
-  comparison in the suite is either within one build (both sides compiled alike)
-  or against a reference at a tolerance far above that. XLA aborts the process on
-  an unknown flag, so a short subprocess first checks that this jaxlib knows it.
+  - `--xla_cpu_use_fusion_emitters=false`: XLA:CPU emits its fused elementwise
+    loops with the older LLVM IR emitters instead of the MLIR fusion emitters,
+    which compile the MJX physics, the ray caster and the learner in markedly less
+    time and run them as fast.
+  - `--xla_backend_optimization_level=0`: LLVM generates code without its
+    optimisation passes. Most of the suite's time is compiling, and LLVM's passes
+    are a large part of each compilation; the programs run slower, which the
+    suite's few long loops afford.
+
+  Results may differ from the defaults' in the last bits of float32 (another
+  instruction order, e.g. where a multiply-add is fused), and two different
+  programs computing the same values (a whole step and its composed parts) may
+  differ from each other there: such comparisons allow a few float32 ulps, and
+  every comparison against a reference has a tolerance far above that. XLA aborts
+  the process on an unknown flag, so a short subprocess first checks that this
+  jaxlib knows them.
   """
   flags = os.environ.get("XLA_FLAGS", "")
-  if os.environ.get("DMCR_TESTS_XLA_DEFAULTS") or "xla_cpu_use_fusion_emitters" in flags:
+  if os.environ.get("DMCR_TESTS_XLA_DEFAULTS"):
+    return
+  extra = " ".join(f for f in FAST_COMPILE_FLAGS if f.split("=")[0] not in flags)
+  if not extra:
     return
   probe = subprocess.run(
       [sys.executable, "-c", "import jax; jax.devices()"], capture_output=True, timeout=120,
-      env=dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=f"{flags} {FAST_COMPILE_FLAG}"))
+      env=dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=f"{flags} {extra}"))
   if probe.returncode == 0:
-    os.environ["XLA_FLAGS"] = f"{flags} {FAST_COMPILE_FLAG}".strip()
+    os.environ["XLA_FLAGS"] = f"{flags} {extra}".strip()
 
 
 def collect_less() -> None:

@@ -11,7 +11,7 @@ import pytest
 import dmcr_jax
 from dmcr_jax import physics_env
 from dmcr_jax.visuals import render_model as rmod
-from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, SeedRange, levels
+from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, EnvRanges, SeedBounds, SeedRange, levels
 
 pytestmark = pytest.mark.xdist_group("env")
 
@@ -51,15 +51,16 @@ def test_rewards_and_states_equal_the_model(env, one_step):
   s_skip, r_skip = jax.jit(lambda s: physics_env.skip_step(task, s, jnp.ones(1), SKIP))(s0)
   np.testing.assert_allclose(float(r_skip), total, rtol=1e-5)
   np.testing.assert_allclose(np.asarray(s_skip.obs), np.asarray(s.obs), atol=1e-5)
-  # The env's rewards and state features are the vmapped model's, exactly.
+  # The env's rewards and state features are the vmapped model's (to float32's last
+  # bits, grown over the episode: the env's jitted step is another XLA program).
   step = jax.jit(jax.vmap(lambda s, a: physics_env.skip_step(task, s, a, SKIP)))
   rng = np.random.default_rng(0)
   for _ in range(EPISODE):
     a = _actions(rng, env)
     _, reward, _, _, info = env.step(a)
     state, want = step(state, jnp.asarray(a))
-    np.testing.assert_array_equal(reward, np.asarray(want))
-    np.testing.assert_array_equal(info["state"], np.asarray(state.obs))
+    np.testing.assert_allclose(reward, np.asarray(want), rtol=1e-5, atol=2e-5)
+    np.testing.assert_allclose(info["state"], np.asarray(state.obs), rtol=1e-5, atol=2e-5)
 
 
 def test_autoreset_and_frame_stack_at_episode_boundaries(env):
@@ -221,6 +222,34 @@ def test_seed_ranges_are_disjoint_and_sampled_inside():
     levels(10, start=2**30 - 5)
   with pytest.raises(ValueError, match="start < stop"):
     SeedRange(5, 5)
+
+
+def test_seed_bounds_draw_what_the_static_ranges_draw():
+  """Ranges passed as traced `SeedBounds` (the pool env's physics) draw, key for key,
+  the seeds their static `SeedRange`/`EnvRanges` draw; one compilation serves all."""
+  ranges = [levels(1), levels(7, start=3), TRAIN_SEEDS, TEST_SEEDS]
+  per_env = EnvRanges(tuple(ranges))
+  keys = jax.random.split(jax.random.key(5), 64)
+  traces = []
+
+  def draw(bounds, keys):
+    traces.append(1)
+    return jax.vmap(lambda k: jax.vmap(lambda i: bounds.sample(k, i))(jnp.arange(4)))(keys)
+
+  draw = jax.jit(draw)
+  for r in ranges:
+    got = np.asarray(draw(SeedBounds.of(r, 4), keys))
+    want = np.asarray(jax.vmap(r.sample)(keys))
+    np.testing.assert_array_equal(got, np.repeat(want[:, None], 4, axis=1))
+  got = np.asarray(draw(SeedBounds.of(per_env, 4), keys))
+  want = np.asarray(jax.vmap(lambda k: jnp.stack([per_env.sample(k, i) for i in range(4)]))(keys))
+  np.testing.assert_array_equal(got, want)
+  assert len(traces) == 1
+  # Fixed seeds stay an int32 array; ranges become bounds of one range per env.
+  assert physics_env.seed_argument([3, 4], 2).dtype == np.int32
+  np.testing.assert_array_equal(physics_env.seed_argument(levels(5), 3).stop, [5, 5, 5])
+  with pytest.raises(ValueError, match="2 ranges for 3 envs"):
+    SeedBounds.of(EnvRanges((levels(1), levels(2))), 3)
 
 
 @pytest.mark.slow

@@ -10,7 +10,7 @@ import pytest
 
 import dmcr_jax
 from dmcr_jax import env as env_mod
-from dmcr_jax import models
+from dmcr_jax import models, physics_env
 from dmcr_jax.physics_pool import PhysicsPool
 from dmcr_jax.visuals.levels import EnvRanges, SeedRange
 
@@ -20,9 +20,10 @@ TASK, N, SKIP, EPISODE = "pendulum-swingup", 3, 100, 10
 pytestmark = pytest.mark.xdist_group("env")
 
 
-def in_process(seed_range):
-  """The env's own jitted (init, step) for N envs on the CPU."""
-  return env_mod._physics_fns(models.load(TASK), N, SKIP, seed_range, False)
+def in_process():
+  """The env's own jitted (init, step) for N envs on the CPU (seeds traced: the
+  ranges as `SeedBounds`, where the pool's workers hold them static)."""
+  return env_mod._physics_fns(models.load(TASK), N, SKIP, False)
 
 
 def plain(tree):
@@ -41,13 +42,14 @@ def assert_close(a, b):
 
 def run_both(pool, seed_arg, steps, es_ref, es, seed=0):
   """Steps the pool and the in-process physics alike; returns both states."""
-  _, step = in_process(pool.seed_range)
+  _, step = in_process()
   rng = np.random.default_rng(seed)
   cpu = jax.devices("cpu")[0]
+  seeds = jax.device_put(physics_env.seed_argument(
+      pool.seed_range if seed_arg is None else seed_arg, N), cpu)
   for _ in range(steps):
     a = rng.uniform(-1, 1, (N, models.load(TASK).action_size)).astype(np.float32)
-    es_ref, r_ref, t_ref = step(es_ref, jax.device_put(a, cpu),
-                                None if seed_arg is None else jax.device_put(seed_arg, cpu))
+    es_ref, r_ref, t_ref = step(es_ref, jax.device_put(a, cpu), seeds)
     es, r, t = pool.step(es, a, seed_arg).result()
     np.testing.assert_allclose(r, r_ref, rtol=1e-4, atol=1e-5)
     np.testing.assert_array_equal(t, t_ref)
@@ -56,7 +58,7 @@ def run_both(pool, seed_arg, steps, es_ref, es, seed=0):
 
 def init_both(pool, seeds, key_seed: int):
   """Both physics started with fixed `seeds` from one key; (in-process, pool) states."""
-  init, _ = in_process(None)
+  init, _ = in_process()
   key = jax.random.key(key_seed)
   es_ref = init(key, jax.device_put(seeds, jax.devices("cpu")[0]))
   es = pool.init(key, seeds)
@@ -105,11 +107,11 @@ def test_killed_worker_loses_no_state(fixed_pool):
 @pytest.mark.slow
 def test_per_env_ranges_draw_as_in_process_in_every_slice():
   ranges = EnvRanges((SeedRange(0, 10), SeedRange(20, 30), SeedRange(40, 50)))
-  init, _ = in_process(ranges)
+  init, _ = in_process()
   key = jax.random.key(2)
   with PhysicsPool(models.load(TASK), N, SKIP, ranges, workers=2) as pool:
     assert [b - a for a, b in pool._pool.slices(N)] == [2, 1]  # offsets matter
-    es_ref, es = init(key, None), pool.init(key)
+    es_ref, es = init(key, physics_env.seed_argument(ranges, N)), pool.init(key)
     assert_close(es, es_ref)
     es_ref, es = run_both(pool, None, EPISODE + 1, es_ref, es)
   assert_close(es, es_ref)

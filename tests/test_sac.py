@@ -81,6 +81,12 @@ def _assert_tree(check, a, b):
   jax.tree_util.tree_map(lambda x, y: check(np.asarray(x), np.asarray(y)), a, b)
 
 
+def _assert_same_computation(x, y):
+  """Equal up to float32's last bits: the values of two XLA programs that compute
+  the same function (another fusion, another instruction order)."""
+  np.testing.assert_allclose(x, y, rtol=2e-5, atol=1e-7)
+
+
 # --------------------------------------------------------------------------- #
 # The policy distribution.
 # --------------------------------------------------------------------------- #
@@ -319,10 +325,9 @@ def test_actor_step_moves_only_actor_alpha_and_targets(agent):
   critic_only, critic_metrics = update(agent, batch, jax.random.key(9), CONFIG,
                                        update_actor=False)
   for group in ("encoder", "critic"):
-    _assert_tree(np.testing.assert_array_equal, full.params[group],
-                 critic_only.params[group])
+    _assert_tree(_assert_same_computation, full.params[group], critic_only.params[group])
   assert set(critic_metrics) == {"critic_loss", "lam_loss", "q", "alpha"}
-  np.testing.assert_array_equal(metrics["critic_loss"], critic_metrics["critic_loss"])
+  _assert_same_computation(metrics["critic_loss"], critic_metrics["critic_loss"])
   _assert_tree(np.testing.assert_array_equal, critic_only.params["actor"],
                agent.params["actor"])
   _assert_tree(np.testing.assert_array_equal, critic_only.target_params,
@@ -518,7 +523,7 @@ def test_critic_loss_on_staged_inputs_equals_the_unstaged_one(agent, batch, beta
   run = lambda *extra: jax.jit(jax.grad(sac.critic_loss, has_aux=True),
                                static_argnums=6)(params, agent, batch, mixed, z_obs,
                                                  jax.random.key(7), config, *extra)
-  _assert_tree(np.testing.assert_array_equal, run(inputs), run())
+  _assert_tree(_assert_same_computation, run(inputs), run())
 
 
 def test_update_pair_is_the_same_with_and_without_staged_inputs(agent):

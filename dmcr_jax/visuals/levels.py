@@ -12,7 +12,9 @@ The space of visual seeds [0, 2**31) is split in two halves that never overlap:
 A `SeedRange` is a half-open interval [start, stop) of seeds; `sample(key, shape)`
 draws from it uniformly inside `jit`, and `first(n)` lists its first n seeds (a
 fixed, documented evaluation set). `EnvRanges` gives each env of a batch its own
-range (agents with different training ranges in one run).
+range (agents with different training ranges in one run). Both are static under
+`jit` (hashable); `SeedBounds` holds a batch's ranges as arrays instead, so one
+compilation serves any ranges.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import struct
 
 from dmcr_jax.checks import positive_int
 from dmcr_jax.visuals.params import MAX_SEED
@@ -101,9 +104,7 @@ class EnvRanges:
   def sample(self, key: jax.Array, index: jax.Array) -> jax.Array:
     """A uniform int32 seed from env `index`'s range (jittable; `index` may be
     traced). Draws what `ranges[index].sample(key)` draws."""
-    start = jnp.asarray([r.start for r in self.ranges], jnp.int32)[index]
-    stop = jnp.asarray([r.stop for r in self.ranges], jnp.int32)[index]
-    return jax.random.randint(key, (), start, stop, dtype=jnp.int32)
+    return SeedBounds.of(self, len(self)).sample(key, index)
 
   def contains_all(self, seeds) -> bool:
     """Whether every row of an int array (…, N) lies in its env's range."""
@@ -115,6 +116,37 @@ class EnvRanges:
   def __repr__(self):
     distinct = list(dict.fromkeys(self.ranges))
     return f"EnvRanges({len(self)} envs: {', '.join(map(repr, distinct))})"
+
+
+@struct.dataclass
+class SeedBounds:
+  """N envs' seed ranges as int32 arrays: env i draws from [start[i], stop[i]).
+
+  The arrays are traced under `jit`, so a function taking `SeedBounds` compiles
+  once for every range of a batch size (a `SeedRange` or `EnvRanges` is static:
+  each new range compiles anew).
+
+  Attributes:
+    start, stop: int32 (N,), start < stop.
+  """
+  start: jax.Array
+  stop: jax.Array
+
+  @classmethod
+  def of(cls, ranges: "SeedRange | EnvRanges", num_envs: int) -> "SeedBounds":
+    """The bounds of one range for all `num_envs` envs, or of an `EnvRanges`
+    (one range per env; its length must be `num_envs`)."""
+    rs = ranges.ranges if isinstance(ranges, EnvRanges) else (ranges,) * int(num_envs)
+    if len(rs) != num_envs:
+      raise ValueError(f"{ranges!r} holds {len(rs)} ranges for {num_envs} envs")
+    return cls(start=np.asarray([r.start for r in rs], np.int32),
+               stop=np.asarray([r.stop for r in rs], np.int32))
+
+  def sample(self, key: jax.Array, index: jax.Array) -> jax.Array:
+    """A uniform int32 seed from env `index`'s range (jittable); for the bounds
+    of a `SeedRange` r, the seed `r.sample(key)` draws."""
+    return jax.random.randint(key, (), jnp.asarray(self.start)[index],
+                              jnp.asarray(self.stop)[index], dtype=jnp.int32)
 
 
 TRAIN_SEEDS = SeedRange(0, _SPLIT)
