@@ -276,9 +276,9 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     a traced argument (fixed seeds, or ranges as `SeedBounds`: one compilation
     serves any of them); with physics workers a range is static (a new range
     starts new workers)."""
-    fixed = not isinstance(self.seeds, (SeedRange, EnvRanges))
-    seed_range = None if fixed else self.seeds
     if self.physics_workers:
+      fixed = not isinstance(self.seeds, (SeedRange, EnvRanges))
+      seed_range = None if fixed else self.seeds
       if self._physics_pool is not None and self._physics_pool.seed_range != seed_range:
         self._close_physics()
       if self._physics_pool is None:

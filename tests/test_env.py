@@ -11,7 +11,8 @@ import pytest
 import dmcr_jax
 from dmcr_jax import physics_env
 from dmcr_jax.visuals import render_model as rmod
-from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, EnvRanges, SeedBounds, SeedRange, levels
+from dmcr_jax.visuals.levels import (TEST_SEEDS, TRAIN_SEEDS, EnvRanges, SeedBounds, SeedRange,
+                                     levels)
 
 pytestmark = pytest.mark.xdist_group("env")
 
