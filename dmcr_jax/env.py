@@ -272,24 +272,21 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     self.reset_timings()
 
   def _use_physics(self) -> None:
-    """Points `_init`/`_step` at the current seed source. In process, the seeds are
-    a traced argument (fixed seeds, or ranges as `SeedBounds`: one compilation
-    serves any of them); with physics workers a range is static (a new range
-    starts new workers)."""
+    """Points `_init`/`_step` at the physics (in process, or the physics workers)
+    and `_seed_arg` at the current seed source, their traced seed argument (fixed
+    seeds, or ranges as `SeedBounds`): one compilation, and one set of workers,
+    serve any seeds."""
+    seed_arg = physics_env.seed_argument(self.seeds, self.num_envs)
     if self.physics_workers:
-      fixed = not isinstance(self.seeds, (SeedRange, EnvRanges))
-      seed_range = None if fixed else self.seeds
-      if self._physics_pool is not None and self._physics_pool.seed_range != seed_range:
-        self._close_physics()
       if self._physics_pool is None:
         self._physics_pool = PhysicsPool(self.task, self.num_envs, self.frame_skip,
-                                         seed_range, self.physics_workers)
+                                         self.physics_workers)
       self._init, self._step = self._physics_pool.init, self._physics_pool.step
-      self._seed_arg = np.asarray(self.seeds, np.int32) if fixed else None
+      self._seed_arg = seed_arg
       return
     self._init, self._step = _physics_fns(self.task, self.num_envs, self.frame_skip,
                                           self._physics_on.platform != "cpu")
-    self._seed_arg = self._on_physics(physics_env.seed_argument(self.seeds, self.num_envs))
+    self._seed_arg = self._on_physics(seed_arg)
 
   def _close_physics(self) -> None:
     """Stops the physics workers, if any (idempotent)."""

@@ -23,15 +23,13 @@ can differ and, in chaotic stretches of an episode, grow
 
 from __future__ import annotations
 
-from typing import Any
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from dmcr_jax import physics_env
 from dmcr_jax.checks import positive_int
-from dmcr_jax.visuals.levels import EnvRanges, SeedRange
+from dmcr_jax.visuals.levels import SeedBounds
 from dmcr_jax.visuals.pool import ArraySpec, OwnsWorkerPool, WorkerPool
 
 
@@ -80,44 +78,27 @@ class _Stepper:
   """A physics worker's callable (`WorkerPool` protocol): `init` or one `step`
   of its slice of envs, from `prev`'s records into `out`'s."""
 
-  def __init__(self, task_name: str, solver_iterations, ls_iterations, frame_skip: int,
-               seed_range: SeedRange | EnvRanges | None):
+  def __init__(self, task_name: str, solver_iterations, ls_iterations, frame_skip: int):
     from dmcr_jax import models
     from dmcr_jax.models.base import physics_jit
-    self.task = models.load(task_name, solver_iterations, ls_iterations)
-    self.frame_skip, self.seed_range = frame_skip, seed_range
-    self.treedef, _, self.key_leaf = _layout(self.task)
-    self._jit = physics_jit
-    self._fns = {}
-
-  def _seeds(self, inputs) -> tuple[Any, Any]:
-    """(static seed source or None, traced seed argument) of this slice."""
-    if self.seed_range is None:
-      return None, np.ascontiguousarray(inputs["seed"])
-    if isinstance(self.seed_range, EnvRanges):
-      first, n = int(inputs["index"][0]), len(inputs["index"])
-      return EnvRanges(self.seed_range.ranges[first:first + n]), None
-    return self.seed_range, None
-
-  def _functions(self, static):
-    if static not in self._fns:
-      pick = (lambda arg: arg) if static is None else (lambda arg: static)
-      task, skip = self.task, self.frame_skip
-      init = self._jit(lambda keys, arg: physics_env.init(task, pick(arg), keys, keys.shape[0]))
-      step = self._jit(lambda es, a, arg: physics_env.step(task, pick(arg), skip, es, a))
-      self._fns[static] = (init, step)
-    return self._fns[static]
+    task = models.load(task_name, solver_iterations, ls_iterations)
+    self.treedef, _, self.key_leaf = _layout(task)
+    # The seed argument's kind (fixed seeds or `SeedBounds`) is its pytree type:
+    # each kind traces once, any values after that.
+    self._init = physics_jit(lambda keys, arg: physics_env.init(task, arg, keys, keys.shape[0]))
+    self._step = physics_jit(lambda es, a, arg: physics_env.step(task, arg, frame_skip, es, a))
 
   def __call__(self, inputs, out, prev) -> None:
-    static, arg = self._seeds(inputs)
-    init, step = self._functions(static)
+    c = np.ascontiguousarray
+    arg = (SeedBounds(start=c(inputs["start"]), stop=c(inputs["stop"])) if inputs["ranged"][0]
+           else c(inputs["seed"]))
     if inputs["init"][0]:
-      keys = jax.random.wrap_key_data(np.ascontiguousarray(inputs["key"]))
-      es = init(keys, arg)
+      keys = jax.random.wrap_key_data(c(inputs["key"]))
+      es = self._init(keys, arg)
       out["reward"], out["truncated"] = 0.0, False
     else:
       es = _unpack(prev, self.treedef, self.key_leaf, copy=True)
-      es, reward, truncated = step(es, np.ascontiguousarray(inputs["action"]), arg)
+      es, reward, truncated = self._step(es, c(inputs["action"]), arg)
       out["reward"], out["truncated"] = np.asarray(reward), np.asarray(truncated)
     _pack(es, out, self.key_leaf)
 
@@ -130,43 +111,47 @@ class PhysicsPool(OwnsWorkerPool):
       the workers).
     num_envs: N.
     frame_skip: control steps per agent step.
-    seed_range: the static seed source (a `SeedRange` or `EnvRanges`), or None
-      for fixed seeds (passed to each call).
     workers: W ≥ 1 (at most N are used).
     timeout: seconds a worker may take for one call before it is replaced.
 
   `init(key, seeds)` and `step(es, actions, seeds)` take and return what the
   jitted `physics_env` functions do, with NumPy leaves (the key on the CPU);
+  `seeds` is their seed argument (`physics_env.seed_argument`: fixed int32 (N,)
+  seeds or `SeedBounds`), per call, so one pool serves any seeds and ranges;
   `step` returns at once, with a `PendingStep` whose `result()` waits. The
   workers keep stepping the state the pool returned last; `step` of any other
   state (e.g. one changed by the caller) loads it into their records first.
   Use as a context manager or call `close()`.
   """
 
-  def __init__(self, task, num_envs: int, frame_skip: int,
-               seed_range: SeedRange | EnvRanges | None, workers: int,
+  def __init__(self, task, num_envs: int, frame_skip: int, workers: int,
                timeout: float = 120.0):
     n = positive_int("num_envs", num_envs)
     workers = min(positive_int("physics workers", workers), n)
-    self.num_envs, self.seed_range = n, seed_range
+    self.num_envs = n
     self.treedef, record, self.key_leaf = _layout(task)
     key_shape = record[f"l{self.key_leaf}"].shape
     inputs = {"action": ArraySpec((task.action_size,), "float32"),
               "key": ArraySpec(key_shape, "uint32"),
-              "seed": ArraySpec((), "int32"), "index": ArraySpec((), "int32"),
+              "seed": ArraySpec((), "int32"), "start": ArraySpec((), "int32"),
+              "stop": ArraySpec((), "int32"), "ranged": ArraySpec((), "bool"),
               "init": ArraySpec((), "bool")}
     self._pool = WorkerPool(
-        _Stepper, (task.name, task.solver_iterations, task.ls_iterations, frame_skip,
-                   seed_range),
+        _Stepper, (task.name, task.solver_iterations, task.ls_iterations, frame_skip),
         inputs, ArraySpec((), record), max_batch=n, workers=workers, timeout=timeout,
         buffers=2, kind="physics",
         env={"JAX_PLATFORMS": "cpu", "XLA_PYTHON_CLIENT_PREALLOCATE": "false"})
-    self._pool.inputs["index"][:] = np.arange(n)
     self.num_workers = self._pool.num_workers
     self._current = None
 
   def _seeds_in(self, seeds) -> None:
-    if self.seed_range is None:
+    """Writes a call's seed argument into the workers' inputs."""
+    ranged = isinstance(seeds, SeedBounds)
+    self._pool.inputs["ranged"][:] = ranged
+    if ranged:
+      self._pool.inputs["start"][:] = np.asarray(seeds.start, np.int32)
+      self._pool.inputs["stop"][:] = np.asarray(seeds.stop, np.int32)
+    else:
       self._pool.inputs["seed"][:] = np.asarray(seeds, np.int32)
 
   def _result(self, records: np.ndarray):
@@ -177,7 +162,7 @@ class PhysicsPool(OwnsWorkerPool):
     self._current = es
     return es, records
 
-  def init(self, key: jax.Array, seeds=None):
+  def init(self, key: jax.Array, seeds):
     """`physics_env.init` of the N envs (waits); `key`: one key or N keys."""
     keys = key if key.shape == (self.num_envs,) else jax.random.split(key, self.num_envs)
     self._pool.inputs["key"][:] = np.asarray(jax.random.key_data(keys))
@@ -185,7 +170,7 @@ class PhysicsPool(OwnsWorkerPool):
     self._seeds_in(seeds)
     return self._result(self._pool.run(self.num_envs))[0]
 
-  def step(self, es, actions, seeds=None) -> "PendingStep":
+  def step(self, es, actions, seeds) -> "PendingStep":
     """Starts `physics_env.step(es, actions)` of the N envs; returns at once."""
     if es is not self._current:
       _pack(es, self._pool.output, self.key_leaf)  # read as `prev` by this call

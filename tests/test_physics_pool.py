@@ -21,8 +21,7 @@ pytestmark = pytest.mark.xdist_group("env")
 
 
 def in_process():
-  """The env's own jitted (init, step) for N envs on the CPU (seeds traced: the
-  ranges as `SeedBounds`, where the pool's workers hold them static)."""
+  """The env's own jitted (init, step) for N envs on the CPU."""
   return env_mod._physics_fns(models.load(TASK), N, SKIP, False)
 
 
@@ -40,16 +39,16 @@ def assert_close(a, b):
       np.testing.assert_allclose(x, y, rtol=1e-4, atol=1e-5)
 
 
-def run_both(pool, seed_arg, steps, es_ref, es, seed=0):
-  """Steps the pool and the in-process physics alike; returns both states."""
+def run_both(pool, seeds, steps, es_ref, es, seed=0):
+  """Steps the pool and the in-process physics alike, with the seed source `seeds`
+  (fixed seeds or ranges); returns both states."""
   _, step = in_process()
   rng = np.random.default_rng(seed)
   cpu = jax.devices("cpu")[0]
-  seeds = jax.device_put(physics_env.seed_argument(
-      pool.seed_range if seed_arg is None else seed_arg, N), cpu)
+  seed_arg = physics_env.seed_argument(seeds, N)
   for _ in range(steps):
     a = rng.uniform(-1, 1, (N, models.load(TASK).action_size)).astype(np.float32)
-    es_ref, r_ref, t_ref = step(es_ref, jax.device_put(a, cpu), seeds)
+    es_ref, r_ref, t_ref = step(es_ref, jax.device_put(a, cpu), jax.device_put(seed_arg, cpu))
     es, r, t = pool.step(es, a, seed_arg).result()
     np.testing.assert_allclose(r, r_ref, rtol=1e-4, atol=1e-5)
     np.testing.assert_array_equal(t, t_ref)
@@ -57,66 +56,72 @@ def run_both(pool, seed_arg, steps, es_ref, es, seed=0):
 
 
 def init_both(pool, seeds, key_seed: int):
-  """Both physics started with fixed `seeds` from one key; (in-process, pool) states."""
+  """Both physics started with the seed source `seeds` (fixed seeds or ranges) from
+  one key; (in-process, pool) states."""
   init, _ = in_process()
   key = jax.random.key(key_seed)
-  es_ref = init(key, jax.device_put(seeds, jax.devices("cpu")[0]))
-  es = pool.init(key, seeds)
+  seed_arg = physics_env.seed_argument(seeds, N)
+  es_ref = init(key, jax.device_put(seed_arg, jax.devices("cpu")[0]))
+  es = pool.init(key, seed_arg)
   assert_close(es, es_ref)
   return es_ref, es
 
 
 @pytest.fixture(scope="module")
-def fixed_pool():
-  with PhysicsPool(models.load(TASK), N, SKIP, None, workers=2) as pool:
+def pool():
+  """Two physics workers for the N envs; every test's seeds, fixed or ranges, go
+  through the same pool."""
+  with PhysicsPool(models.load(TASK), N, SKIP, workers=2) as pool:
     yield pool
 
 
 @pytest.mark.slow
-def test_fixed_seeds_match_in_process_across_an_episode_end(fixed_pool):
+def test_fixed_seeds_match_in_process_across_an_episode_end(pool):
   seeds = np.array([3, 7, 9], np.int32)
-  es_ref, es = init_both(fixed_pool, seeds, 5)
-  es_ref, es = run_both(fixed_pool, seeds, EPISODE + 2, es_ref, es)
+  es_ref, es = init_both(pool, seeds, 5)
+  es_ref, es = run_both(pool, seeds, EPISODE + 2, es_ref, es)
   assert_close(es, es_ref)
   np.testing.assert_array_equal(es.episode, [1] * N)
   np.testing.assert_array_equal(es.visual_seed, seeds)
 
 
 @pytest.mark.slow
-def test_a_changed_state_is_loaded_into_the_workers(fixed_pool):
+def test_a_changed_state_is_loaded_into_the_workers(pool):
   seeds = np.zeros(N, np.int32)
-  es_ref, es = init_both(fixed_pool, seeds, 6)
+  es_ref, es = init_both(pool, seeds, 6)
   moved = lambda e: e.replace(task=e.task.replace(
       data=e.task.data.replace(qvel=np.asarray(e.task.data.qvel) + 1.0)))
-  es_ref, es = run_both(fixed_pool, seeds, 2, moved(es_ref), moved(es))
+  es_ref, es = run_both(pool, seeds, 2, moved(es_ref), moved(es))
   assert_close(es, es_ref)
 
 
 @pytest.mark.slow
-def test_killed_worker_loses_no_state(fixed_pool):
+def test_killed_worker_loses_no_state(pool):
   seeds = np.zeros(N, np.int32)
-  es_ref, es = init_both(fixed_pool, seeds, 9)
-  es_ref, es = run_both(fixed_pool, seeds, 2, es_ref, es)
-  restarts = fixed_pool.restarts
-  os.kill(fixed_pool.pids[1], signal.SIGKILL)
-  es_ref, es = run_both(fixed_pool, seeds, 3, es_ref, es, seed=2)
-  assert fixed_pool.restarts == restarts + 1
+  es_ref, es = init_both(pool, seeds, 9)
+  es_ref, es = run_both(pool, seeds, 2, es_ref, es)
+  restarts = pool.restarts
+  os.kill(pool.pids[1], signal.SIGKILL)
+  es_ref, es = run_both(pool, seeds, 3, es_ref, es, seed=2)
+  assert pool.restarts == restarts + 1
   assert_close(es, es_ref)
 
 
 @pytest.mark.slow
-def test_per_env_ranges_draw_as_in_process_in_every_slice():
+def test_per_env_ranges_draw_as_in_process_in_every_slice(pool):
   ranges = EnvRanges((SeedRange(0, 10), SeedRange(20, 30), SeedRange(40, 50)))
-  init, _ = in_process()
-  key = jax.random.key(2)
-  with PhysicsPool(models.load(TASK), N, SKIP, ranges, workers=2) as pool:
-    assert [b - a for a, b in pool._pool.slices(N)] == [2, 1]  # offsets matter
-    es_ref, es = init(key, physics_env.seed_argument(ranges, N)), pool.init(key)
-    assert_close(es, es_ref)
-    es_ref, es = run_both(pool, None, EPISODE + 1, es_ref, es)
+  assert [b - a for a, b in pool._pool.slices(N)] == [2, 1]  # offsets matter
+  es_ref, es = init_both(pool, ranges, 2)
+  es_ref, es = run_both(pool, ranges, EPISODE + 1, es_ref, es)
   assert_close(es, es_ref)
   assert ranges.contains_all(es.visual_seed)
   np.testing.assert_array_equal(es.episode, [1] * N)
+  # Another range, the same workers: drawn from it alone.
+  other = SeedRange(100, 103)
+  es_ref, es = init_both(pool, other, 3)
+  es_ref, es = run_both(pool, other, EPISODE + 1, es_ref, es)
+  assert_close(es, es_ref)
+  assert other.contains_all(es.visual_seed)
 
 
 @pytest.mark.slow
