@@ -663,7 +663,7 @@ class JaxPixelVectorEnv(_PixelEnvBase):
 
   def _use_seeds(self) -> None:
     """Builds the functional env for the current seeds: fixed seeds only replace
-    its look table (nothing recompiles); a range is static."""
+    its look table, ranges its `SeedBounds` (nothing recompiles)."""
     self._use_physics()
     self.functional = jax_env.make_env(
         self.task, self.num_envs, self.seeds, self.vary, self.frame_skip, self.frame_stack,

@@ -56,7 +56,7 @@ from dmcr_jax.models.base import Task
 from dmcr_jax.visuals import jax_render as JR
 from dmcr_jax.visuals import jax_render_scene as JS
 from dmcr_jax.visuals import render_model as rmod
-from dmcr_jax.visuals.levels import EnvRanges, SeedRange
+from dmcr_jax.visuals.levels import EnvRanges, SeedBounds, SeedRange
 
 RENDER_CHUNK = 256
 """Default envs per vmapped render chunk above which `render_batch` maps over chunks
@@ -118,9 +118,9 @@ class PixelEnv:
     looks: `DeviceLook` table of fixed seeds, (N, …) row i for env i; None
       when the seeds are drawn.
     fixed_seeds: int32 (N,) visual seeds (fixed seeds) or None (drawn).
+    seed_bounds: the few-shot ranges the seeds are drawn from, as `SeedBounds`
+      (traced: one compilation serves any ranges of N envs), or None (fixed seeds).
     task: static; the `Task`.
-    seed_range: static; the few-shot `SeedRange` or `EnvRanges` the seeds are
-      drawn from, or None (fixed seeds).
     num_envs, frame_skip, frame_stack, height, width: static sizes.
     shadows, reflection: static; the ray caster's options (`jax_render.render`).
     render_chunk: static; envs per render chunk (None: all at once).
@@ -132,8 +132,8 @@ class PixelEnv:
   maker: JS.LookMaker
   looks: JS.DeviceLook | None
   fixed_seeds: jax.Array | None
+  seed_bounds: SeedBounds | None
   task: Task = struct.field(pytree_node=False)
-  seed_range: SeedRange | EnvRanges | None = struct.field(pytree_node=False)
   num_envs: int = struct.field(pytree_node=False)
   frame_skip: int = struct.field(pytree_node=False)
   frame_stack: int = struct.field(pytree_node=False)
@@ -146,7 +146,7 @@ class PixelEnv:
 
   @property
   def _seeds(self) -> physics_env.SeedSource:
-    return self.seed_range if self.seed_range is not None else self.fixed_seeds
+    return self.seed_bounds if self.seed_bounds is not None else self.fixed_seeds
 
   def looks_of(self, visual_seed: jax.Array) -> JS.DeviceLook:
     """The looks of envs showing `visual_seed` (int32 (N,), drawn by this env).
@@ -154,7 +154,7 @@ class PixelEnv:
     Fixed seeds: the table (row i is env i's seed). Drawn seeds: made from
     `visual_seed` (`maker`).
     """
-    if self.seed_range is None:
+    if self.seed_bounds is None:
       return self.looks
     return self.maker(visual_seed)
 
@@ -253,7 +253,7 @@ class PixelEnv:
       The next `PixelState`, with `physics` None (the physics lives elsewhere).
     """
     look = state.look
-    if self.seed_range is not None:     # fixed seeds keep their look across resets
+    if self.seed_bounds is not None:    # fixed seeds keep their look across resets
       pick = lambda new, old: jnp.where(
           resetting.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)
       # New looks are made only in steps where some env resets (rare).
@@ -327,8 +327,10 @@ def make_env(task: Task, num_envs: int, seeds: SeedRange | EnvRanges | np.ndarra
   drawn = isinstance(seeds, (SeedRange, EnvRanges))
   if isinstance(seeds, EnvRanges) and len(seeds) != num_envs:
     raise ValueError(f"EnvRanges must hold one range per env ({num_envs}), got {len(seeds)}")
-  table = fixed = None
-  if not drawn:
+  table = fixed = bounds = None
+  if drawn:
+    bounds = jax.tree.map(jnp.asarray, SeedBounds.of(seeds, num_envs))
+  else:
     fixed = np.asarray(seeds, np.int32)
     if fixed.shape != (num_envs,):
       raise ValueError(f"fixed visual seeds must have shape ({num_envs},), got {fixed.shape}")
@@ -337,8 +339,8 @@ def make_env(task: Task, num_envs: int, seeds: SeedRange | EnvRanges | np.ndarra
   render_kernel = JR.use_kernel(render_kernel)
   if render_chunk is None and num_envs > RENDER_CHUNK:
     render_chunk = RENDER_CHUNK
-  return PixelEnv(scene=scene, maker=maker, looks=table, fixed_seeds=fixed, task=task,
-                  seed_range=seeds if drawn else None,
+  return PixelEnv(scene=scene, maker=maker, looks=table, fixed_seeds=fixed,
+                  seed_bounds=bounds, task=task,
                   num_envs=int(num_envs), frame_skip=int(frame_skip),
                   frame_stack=int(frame_stack), height=int(height), width=int(width),
                   shadows=bool(shadows), reflection=bool(reflection),

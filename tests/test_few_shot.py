@@ -117,6 +117,11 @@ def test_a_seeds_look_is_the_same_in_every_range_and_batch():
   task = dmcr_jax.load("pendulum-swingup")
   make = lambda seeds, n: jax_env.make_env(task, n, seeds, "all", 100, 3, 16, 16)
   small, large = make(levels(10), 2), make(EnvRanges((levels(1000), TRAIN_SEEDS)), 2)
+  # Ranges are data (`SeedBounds`): one compilation of the env's jitted functions
+  # serves both (same pytree structure and the same shapes).
+  shapes = lambda env: [(x.shape, x.dtype) for x in jax.tree.leaves(env)]
+  assert jax.tree.structure(small) == jax.tree.structure(large)
+  assert shapes(small) == shapes(large)
   fixed = make(np.array([3, 7, 0], np.int32), 3)
   seeds = jnp.asarray([3, 7], jnp.int32)
   looks_of = jax.jit(lambda env, seeds: env.looks_of(seeds))   # as inside the env's step

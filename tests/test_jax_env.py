@@ -74,14 +74,21 @@ def rollouts(envs, actions):
 
 @pytest.mark.slow
 def test_rewards_states_and_info_equal_the_pool_env(rollouts):
+  # Two programs step the same physics (the fused physics-and-frames step, the pool
+  # env's physics alone): floats may differ in float32's last bits, nothing else.
   jax_run, pool_run = rollouts
-  np.testing.assert_array_equal(np.stack(jax_run["reward"]), np.stack(pool_run["reward"]))
+  close = lambda a, b, msg="": np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6,
+                                                           err_msg=msg)
+  close(np.stack(jax_run["reward"]), np.stack(pool_run["reward"]))
   np.testing.assert_array_equal(np.stack(jax_run["truncated"]),
                                 np.stack(pool_run["truncated"]))
   for a, b in zip(jax_run["info"], pool_run["info"]):
     assert a.keys() == b.keys()
     for k in a:
-      np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+      if np.asarray(a[k]).dtype.kind == "f":
+        close(a[k], b[k], k)
+      else:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
 
 
 @pytest.mark.slow
