@@ -237,29 +237,34 @@ def _host_loop_updates(start, steps, n, warmup, utd):
 
 @pytest.mark.slow
 def test_device_training_runs_chunks_logs_checkpoints_and_resumes(tmp_path):
+  # The demo's training run (test_demo: one agent of 2 envs, a 24-transition buffer,
+  # 8 warm-up steps, chunks of 12 vector steps), so both compile one chunk program.
   out = str(tmp_path / "run")
-  base = dict(task=TASK, action_repeat=SKIP, image_size=SIZE, num_envs=1, seeds=(0, 1),
-              visual_seeds=f"levels:{len(RANGE)}", buffer_capacity=200, warmup_steps=5,
-              log_every=5, renderer="jax", chunk_steps=10, out_dir=out, sac=TINY)
-  cfg = loop.TrainConfig(steps=30, checkpoint_every=20, **base)
+  base = dict(task=TASK, action_repeat=SKIP, image_size=SIZE, num_envs=N, seeds=(0,),
+              visual_seeds=f"levels:{len(RANGE)}", buffer_capacity=24, warmup_steps=8,
+              log_every=5, renderer="jax", chunk_steps=12, out_dir=out, sac=TINY)
+  chunk = 12 * N                                          # transitions per agent a chunk
+  cfg = loop.TrainConfig(steps=2 * chunk, checkpoint_every=chunk, **base)
   summary = loop.train(cfg, progress=False)
-  assert summary["steps"] == 30 and not summary["interrupted"]
+  assert summary["steps"] == 2 * chunk and not summary["interrupted"]
   ckpt = os.path.join(out, "checkpoints")
-  assert sorted(int(d) for d in os.listdir(ckpt) if d.isdigit()) == [20, 30]
+  assert sorted(int(d) for d in os.listdir(ckpt) if d.isdigit()) == [chunk, 2 * chunk]
   _, agents, step = loop.load_run(out)
-  assert step == 30
-  np.testing.assert_array_equal(np.asarray(agents.step), [_host_loop_updates(0, 30, 1, 5, 1.0)] * 2)
+  assert step == 2 * chunk
+  np.testing.assert_array_equal(np.asarray(agents.step),
+                                [_host_loop_updates(0, 2 * chunk, N, 8, 1.0)])
   # Resume: agents, step and key restored; new episodes, empty buffers.
-  cfg2 = loop.TrainConfig(steps=50, checkpoint_every=0, **base)
+  cfg2 = loop.TrainConfig(steps=3 * chunk, checkpoint_every=0, **base)
   summary = loop.train(cfg2, resume=True, progress=False)
-  assert summary["steps"] == 50
+  assert summary["steps"] == 3 * chunk
   _, agents2, step = loop.load_run(out)
-  assert step == 50 and (np.asarray(agents2.step) > np.asarray(agents.step)).all()
+  assert step == 3 * chunk and (np.asarray(agents2.step) > np.asarray(agents.step)).all()
   with open(os.path.join(out, "log.csv")) as f:
     rows = list(csv.DictReader(f))
-  # Episodes of 10 steps end at steps 10 and 21, then (resumed at 30) at 40.
+  # Episodes of 10 vector steps (N transitions each) end at vector steps 10 and 21,
+  # then (resumed at 24) at 34: one row per env.
   assert [(int(r["step"]), int(r["agent"])) for r in rows] == [
-      (10, 0), (10, 1), (21, 0), (21, 1), (40, 0), (40, 1)]
+      (s * N, 0) for s in (10, 21, 34) for _ in range(N)]
   assert rows[0]["critic_loss"] and np.isfinite(float(rows[-1]["critic_loss"]))
   assert all(np.isfinite(float(r["episode_return"])) for r in rows)
   assert os.path.exists(os.path.join(out, "learning_curve.png"))
