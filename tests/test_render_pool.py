@@ -60,6 +60,18 @@ def test_worker_count_does_not_change_pixels(pool):
                                   pool.render(qpos, looks, var))
 
 
+def test_workers_render_without_loading_jax(pool):
+  # A worker only applies prepared looks and renders: it never imports JAX, whose
+  # import is a large part of a worker's start-up (every env with the pool renderer
+  # starts its workers). Checked on the loaded shared libraries, after a render.
+  qpos, looks, var = _inputs(pool.rm, 4, seed=3)
+  pool.render(qpos, looks, var)
+  for pid in pool.pids:
+    with open(f"/proc/{pid}/maps") as f:
+      libraries = f.read()
+    assert "libmujoco" in libraries and "jaxlib" not in libraries, pid
+
+
 def test_killed_worker_is_replaced(pool):
   qpos, looks, var = _inputs(pool.rm, 6, seed=2)
   want = pool.render(qpos, looks, var)

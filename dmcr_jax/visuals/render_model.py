@@ -49,7 +49,8 @@ import numpy as np
 from dmcr_jax.models.names import FIELD_OBJECTS, obj_id, suite_compile_quiet, suite_model, suite_xml
 from dmcr_jax.visuals import ranges as R
 from dmcr_jax.visuals.factors import check_domain
-from dmcr_jax.visuals.params import FACTOR_INDEX, VisualParams, sample
+# `params` (JAX and flax) is imported where params are sampled or prepared: render
+# workers only `apply` prepared `Looks`, and start without importing JAX.
 from dmcr_jax.visuals.textures import TextureBank, load_bank
 
 _O = mujoco.mjtObj
@@ -99,6 +100,7 @@ class RenderModel:
 
   def sample(self, seeds, vary="all") -> VisualParams:
     """`params.sample` for this domain with this model's bank sizes."""
+    from dmcr_jax.visuals.params import sample
     return sample(self.domain, seeds, vary, num_floors=self.bank.num_floors,
                   num_backgrounds=self.bank.num_backgrounds)
 
@@ -343,6 +345,7 @@ def prepare(rm: RenderModel, params: VisualParams) -> Looks:
     ValueError: if the params belong to another domain or index textures
       outside the render model's bank.
   """
+  from dmcr_jax.visuals.params import FACTOR_INDEX
   if params.domain and params.domain != rm.domain:
     raise ValueError(f"VisualParams of domain {params.domain!r} cannot be applied "
                      f"to the {rm.domain!r} render model.")
@@ -454,7 +457,7 @@ def apply(rm: RenderModel, looks: Looks | VisualParams, index: int = 0,
   Raises:
     ValueError: if the look needs a skybox switch and no context is given.
   """
-  if isinstance(looks, VisualParams):
+  if not isinstance(looks, Looks):  # VisualParams
     looks = prepare(rm, looks.take(index))
     index = 0
   m, i = rm.model, index

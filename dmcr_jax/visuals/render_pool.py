@@ -46,7 +46,6 @@ import numpy as np
 from dmcr_jax.checks import positive_int
 from dmcr_jax.models.names import FIELD_OBJECTS, find_id
 from dmcr_jax.visuals import render_model as rmod
-from dmcr_jax.visuals.params import VisualParams
 from dmcr_jax.visuals.pool import ArraySpec, OwnsWorkerPool, WorkerPool
 from dmcr_jax.visuals.tiled import TiledRenderer, check_quality, prepare_kinematics
 
@@ -263,7 +262,7 @@ class RenderPool(OwnsWorkerPool):
     n = qpos.shape[0]
     if not 1 <= n <= self.max_batch:
       raise ValueError(f"batch size must be in [1, {self.max_batch}], got {n}")
-    if isinstance(looks, VisualParams):
+    if not isinstance(looks, rmod.Looks):  # VisualParams
       if looks.domain and looks.domain != self.domain:
         raise ValueError(f"looks are for {looks.domain!r}, the pool renders {self.domain!r}")
       looks = rmod.prepare(self.rm, looks)
