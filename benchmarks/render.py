@@ -5,7 +5,8 @@ and random states, it measures, in one run:
 - the baseline: one `mujoco.Renderer` in this process, one `render()` per frame,
   the look applied per frame (`render_model.FrameRenderer`);
 - the pool at each (batch, workers, quality): frames/s of `RenderPool.render`
-  (the median of `--repeats` calls after a warm-up call); start-up time apart.
+  (the median of `--repeats` calls after a warm-up call), and its start-up time
+  (creating the pool until every worker is ready: seconds, column "start s").
   With the exact preset, 16 frames spread over the batch are compared with the
   single-frame reference renderer (`reference_equal`: how many are bit-identical).
 
@@ -86,7 +87,8 @@ def markdown(rows: list[dict]) -> str:
       ("batch", lambda r: f"{r['batch']:,}"), ("workers", "workers"),
       ("frames/s", lambda r: f"{r['frames_per_s']:,.0f}"),
       ("× naive", lambda r: f"{r['speedup']:.1f}"),
-      ("= reference", lambda r: r.get("reference_equal") or "–")])
+      ("= reference", lambda r: r.get("reference_equal") or "–"),
+      ("start s", lambda r: f"{r['start_s']:.2f}")])
 
 
 def main(argv=None) -> None:
