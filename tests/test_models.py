@@ -215,7 +215,9 @@ def test_random_episode(name):
   """Random actions keep the state finite and its types fixed; done at the limit.
 
   The step's jitted parts (`advance` shared by the physics, `next_state` per
-  task) are each traced once.
+  task) trace at most at the episode's first step, never after it. (Whether an
+  earlier test's trace is reused depends on what else ran in the process: JAX's
+  tracing caches are bounded, and MJX traces fill them.)
 
   The first task of each physics group runs its first `STEPS_FROM_RESET` steps,
   then its step counter jumps to the last 50 steps of the episode (1,000 steps:
@@ -231,8 +233,10 @@ def test_random_episode(name):
   rng = np.random.RandomState(4)
   actions = rng.uniform(task.action_low, task.action_high,
                         (steps, B, task.action_size)).astype(np.float32)
-  t = 0
+  t, traces = 0, None
   while t < steps:
+    if t == 1:
+      traces = (h.traces, h.physics.traces)
     if t == jump:
       t = task.time_limit - 50
       s = s.replace(step_count=jnp.full_like(s.step_count, t))
@@ -244,8 +248,9 @@ def test_random_episode(name):
   # Same structure, shapes, dtypes and weak types: a jitted step traces once.
   assert jax.tree.structure(s) == structure
   assert _types(s) == types
-  # advance and forward, each once for all the tasks of the physics group.
-  assert h.traces == 1 and h.physics.traces == 2
+  # No step after the first traced `next_state` or the physics again.
+  assert (h.traces, h.physics.traces) == traces
+  assert 1 <= h.traces and 1 <= h.physics.traces
   assert task.time_limit == 1000
 
 
