@@ -21,6 +21,9 @@ from typing import Iterable
 FACTORS: tuple[str, ...] = (
     "camera", "light", "body", "target", "floor", "background", "reflectance")
 
+# Column of each factor in `VisualParams.varied` (bool (N, len(FACTORS))).
+FACTOR_INDEX: dict[str, int] = {f: i for i, f in enumerate(FACTORS)}
+
 # Stable stream ids for `jax.random.fold_in` (part of the benchmark definition).
 FACTOR_IDS: dict[str, int] = {
     "camera": 1, "light": 2, "body": 3, "target": 4, "floor": 5,

@@ -40,7 +40,7 @@ from flax import struct
 
 from dmcr_jax.models.names import obj_id, suite_model
 from dmcr_jax.visuals import ranges as R
-from dmcr_jax.visuals.factors import (FACTOR_IDS, FACTORS, active_factors,
+from dmcr_jax.visuals.factors import (FACTOR_IDS, FACTOR_INDEX, FACTORS, active_factors,
                                       check_domain)
 from dmcr_jax.visuals.textures import NUM_BACKGROUNDS, NUM_FLOORS
 
@@ -55,7 +55,6 @@ _WORDS = {"camera": 4, "light": 8, "body": 4, "target": 2, "floor": 2,
 # the draws that existed before keep their values (`_k16` interleaves a stream's
 # words, so appending to it would move them). Never reorder or resize an entry.
 _EXTRA_WORDS = {"light_colour": ("light", 4)}
-FACTOR_INDEX = {f: i for i, f in enumerate(FACTORS)}
 
 
 @struct.dataclass

@@ -41,17 +41,20 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping
 
 import mujoco
 import numpy as np
 
 from dmcr_jax.models.names import FIELD_OBJECTS, obj_id, suite_compile_quiet, suite_model, suite_xml
 from dmcr_jax.visuals import ranges as R
-from dmcr_jax.visuals.factors import check_domain
-# `params` (JAX and flax) is imported where params are sampled or prepared: render
-# workers only `apply` prepared `Looks`, and start without importing JAX.
+from dmcr_jax.visuals.factors import FACTOR_INDEX, check_domain
 from dmcr_jax.visuals.textures import TextureBank, load_bank
+
+# `params` (JAX and flax) is imported only where params are sampled: render workers
+# only `apply` prepared `Looks`, and start without importing JAX.
+if TYPE_CHECKING:
+  from dmcr_jax.visuals.params import VisualParams
 
 _O = mujoco.mjtObj
 _SKYBOX = int(mujoco.mjtTexture.mjTEXTURE_SKYBOX)
@@ -345,7 +348,6 @@ def prepare(rm: RenderModel, params: VisualParams) -> Looks:
     ValueError: if the params belong to another domain or index textures
       outside the render model's bank.
   """
-  from dmcr_jax.visuals.params import FACTOR_INDEX
   if params.domain and params.domain != rm.domain:
     raise ValueError(f"VisualParams of domain {params.domain!r} cannot be applied "
                      f"to the {rm.domain!r} render model.")

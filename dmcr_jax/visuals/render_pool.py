@@ -38,7 +38,7 @@ import copy
 import ctypes.util
 import dataclasses
 import os
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping
 
 import mujoco
 import numpy as np
@@ -48,6 +48,9 @@ from dmcr_jax.models.names import FIELD_OBJECTS, find_id
 from dmcr_jax.visuals import render_model as rmod
 from dmcr_jax.visuals.pool import ArraySpec, OwnsWorkerPool, WorkerPool
 from dmcr_jax.visuals.tiled import TiledRenderer, check_quality, prepare_kinematics
+
+if TYPE_CHECKING:  # workers import this module and never JAX (render_model's note)
+  from dmcr_jax.visuals.params import VisualParams
 
 GL_BACKENDS = ("egl", "osmesa")
 
