@@ -72,6 +72,39 @@ def test_workers_render_without_loading_jax(pool):
     assert "libmujoco" in libraries and "jaxlib" not in libraries, pid
 
 
+def test_a_bank_texture_reaches_the_gl_context_when_a_look_first_draws_it():
+  # What a pool worker does: its context starts with a 1×1 placeholder for each
+  # bank texture and receives a texture before the first frame that draws it.
+  import copy
+  from dmcr_jax.visuals.render_pool import _WorkerRenderer
+  from OpenGL import GL
+  worker = _WorkerRenderer("cartpole", (), 16, 16, 0, "exact", None)
+  rm, renderer = worker.rm, worker.renderer
+  floor = rm.bank_textures[0] + 5
+
+  def gl_width(tex):
+    renderer._gl.make_current()
+    GL.glBindTexture(GL.GL_TEXTURE_2D, int(renderer.context.texture[tex]))
+    return GL.glGetTexLevelParameteriv(GL.GL_TEXTURE_2D, 0, GL.GL_TEXTURE_WIDTH)
+
+  try:
+    assert gl_width(floor) == 1 and rm.model.tex_width[floor] == 256  # the model is intact
+    looks = rmod.prepare(rm, rm.sample(np.arange(1)))
+    looks.floor_matid[:] = rm.floor_mat0 + 5
+    qpos = rm.model.qpos0[None]
+    inputs = {"qpos": qpos, **{"look." + k: v for k, v in vars(looks).items()}}
+    out = np.empty((1, 16, 16, 3), np.uint8)
+    worker(inputs, out)
+    assert gl_width(floor) == 256
+    reference = rmod.FrameRenderer(copy.copy(rm), 16, 16)
+    try:
+      np.testing.assert_array_equal(out[0], reference.render(looks, qpos[0]))
+    finally:
+      reference.close()
+  finally:
+    renderer.close()
+
+
 def test_killed_worker_is_replaced(pool):
   qpos, looks, var = _inputs(pool.rm, 6, seed=2)
   want = pool.render(qpos, looks, var)

@@ -6,9 +6,12 @@ material per floor of the bank (tiling like dm_control's grid) and one cube
 texture per skybox of the bank. Nothing else changes: no body, joint, geom or
 option is added, so the qpos/qvel layout and the dynamics are dm_control's
 (tests step both models and compare bit for bit), and with seed 0 the render
-model draws exactly dm_control's pixels (the bank is uploaded but unused).
+model draws exactly dm_control's pixels (the bank is there but unused).
 
-Switching looks is cheap and never re-uploads a texture:
+Switching looks is cheap: a GL context holds each texture once, and a look only
+selects among them. (`mujoco.Renderer`, as in `FrameRenderer`, uploads the whole
+bank when its context is made; the render pool's workers upload a bank texture
+the first time a look draws it: `look_textures`, `TiledRenderer.upload`.)
 
 * floor: the floor geom's `geom_matid` selects one of the bank's materials
   (materials keep their texture and tiling in the GL context);
@@ -100,6 +103,11 @@ class RenderModel:
     out = dataclasses.replace(self)
     out.model = _copy_model(self.model)
     return out
+
+  @property
+  def bank_textures(self) -> range:
+    """Texture ids of the bank (its floors, then its skies), after dm_control's own."""
+    return range(self.bg_tex0 - self.bank.num_floors, self.bg_tex0 + self.bank.num_backgrounds)
 
   def sample(self, seeds, vary="all") -> VisualParams:
     """`params.sample` for this domain with this model's bank sizes."""
@@ -421,6 +429,13 @@ def prepare(rm: RenderModel, params: VisualParams) -> Looks:
       light_specular=np.where(lcol, P["light_specular"],
                               d["light_specular"]).astype(np.float32),
       skybox_tex=sky)
+
+
+def look_textures(rm: RenderModel, looks: Looks, index: int) -> tuple[int, int]:
+  """Texture ids env `index`'s look draws from the bank or dm_control: its floor
+  material's texture (-1 for none) and its skybox."""
+  floor = int(rm.model.mat_texid[int(looks.floor_matid[index]), _ROLE_RGB])
+  return floor, int(looks.skybox_tex[index])
 
 
 def set_skybox(rm: RenderModel, context: mujoco.MjrContext, tex: int) -> None:

@@ -5,7 +5,9 @@ copy of the domain's render model, render fixed slices of the batch. Inputs — 
 envs' `qpos`, their looks (`render_model.Looks`, one row per env) and the task's
 model variables (targets) — are written once per call into shared memory; each
 worker renders its slice with a `TiledRenderer` (many frames per readback) and
-writes uint8 pixels straight into a shared output array.
+writes uint8 pixels straight into a shared output array. A worker's GL context
+receives a texture of the bank the first time one of its looks draws it, not
+all of them at start.
 
 Pixels equal the single-frame reference (`render_model.FrameRenderer`) bit for
 bit, for any number of workers and any batch size: every frame is rendered at
@@ -142,7 +144,8 @@ class _WorkerRenderer:
     self.data = mujoco.MjData(self.model)
     self.variables = _variable_specs(self.model, variables)
     self.renderer = TiledRenderer(self.model, height, width, camera=camera,
-                                  tiles=tiles, quality=quality)
+                                  tiles=tiles, quality=quality,
+                                  lazy_textures=self.rm.bank_textures)
     self.frame_stack = frame_stack
     self.frames = None
 
@@ -155,6 +158,7 @@ class _WorkerRenderer:
 
     def prepare(i: int) -> None:
       rmod.apply(self.rm, looks, i, context=self.renderer.context)
+      self.renderer.upload(rmod.look_textures(self.rm, looks, i))
       for key, (field, j, _) in self.variables.items():
         getattr(m, field)[j] = inputs["var." + key][i]
       d.qpos[:] = qpos[i]
