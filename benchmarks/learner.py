@@ -123,7 +123,7 @@ def scanned_workload(k: int = 1, dtype: str = "float32", agent_loop: str = "vmap
                      batch: int | None = None, pairs: int = 25, size: int = 84,
                      stack: int = 3, action_size: int = 6, capacity: int = 10_000,
                      algo: str = "sac_aug", aug: str | None = None,
-                     stage_inputs: bool = True, devices: int = 1):
+                     stage_inputs: bool = sac.SACConfig.stage_inputs, devices: int = 1):
   """`dmcr_jax.train.step.learn_jit` for K agents on full random buffers, ready to call repeatedly.
 
   `batch` None takes the algorithm's default; for CURL the frames are rendered
@@ -167,7 +167,7 @@ def scanned_workload(k: int = 1, dtype: str = "float32", agent_loop: str = "vmap
 def bench_scanned(k: int, dtype: str, agent_loop: str, batch: int | None, pairs: int,
                   size: int, stack: int, action_size: int, capacity: int, seconds: float,
                   algo: str = "sac_aug", aug: str | None = None,
-                  stage_inputs: bool = True, devices: int = 1) -> dict:
+                  stage_inputs: bool = sac.SACConfig.stage_inputs, devices: int = 1) -> dict:
   """Updates/s of `dmcr_jax.train.step.learn_jit` for K agents sharded over `devices` local
   devices (`scanned_workload`); one result row."""
   call, config, size = scanned_workload(k, dtype, agent_loop, batch, pairs, size, stack,
@@ -291,8 +291,9 @@ def main(argv=None) -> None:
   p.add_argument("--capacity", type=int, default=10_000, help="buffer rows per agent")
   p.add_argument("--seconds", type=float, default=3.0)
   p.add_argument("--no-baseline", action="store_true")
-  p.add_argument("--stage-inputs", default="on",
-                 help="comma-separated on/off: sac.SACConfig.stage_inputs, a row each")
+  p.add_argument("--stage-inputs", default="on" if sac.SACConfig.stage_inputs else "off",
+                 help="comma-separated on/off: sac.SACConfig.stage_inputs, a row each "
+                      "(default: the config's)")
   p.add_argument("--cost", action="store_true",
                  help="only print XLA's cost analysis (GFLOP and GB per update) of each "
                       "algorithm and dtype, one JSON line each, and stop (nothing is timed "

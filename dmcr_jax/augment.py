@@ -333,26 +333,13 @@ def _to_uint8(x: jax.Array) -> jax.Array:
 def _gather(image: jax.Array, rows: jax.Array, cols: jax.Array) -> jax.Array:
   """``image[rows][:, cols]`` for integer index vectors (in range).
 
-  On accelerators `_gather_pixels`: each output pixel's source is plain index
-  arithmetic, cheap to fuse into the encoder's input. On XLA:CPU `_gather_axes`
-  runs faster. Both give the same pixels.
-  """
-  gather = _gather_axes if jax.default_backend() == "cpu" else _gather_pixels
-  return gather(image, rows, cols)
-
-
-def _gather_axes(image: jax.Array, rows: jax.Array, cols: jax.Array) -> jax.Array:
-  """`_gather` as two one-axis gathers, columns first.
-
-  Columns first: on XLA:CPU the rows-first order gives batched pairs of outputs a
-  transposed layout and a copy; "clip" skips the OOB fill.
+  Two one-axis gathers, columns first: batched, they index with (B, side)
+  vectors, where the one-gather form ``image[rows[:, None], cols[None, :]]``
+  has XLA build and read an index tuple per pixel. Columns first: on XLA:CPU the
+  rows-first order gives batched pairs of outputs a transposed layout and a copy.
+  "clip" skips the out-of-bounds fill.
   """
   return jnp.take(jnp.take(image, cols, axis=1, mode="clip"), rows, axis=0, mode="clip")
-
-
-def _gather_pixels(image: jax.Array, rows: jax.Array, cols: jax.Array) -> jax.Array:
-  """`_gather` as one gather of pixels, ``image[rows[:, None], cols[None, :]]``."""
-  return image.at[rows[:, None], cols[None, :]].get(mode="clip")
 
 
 def _box_mask(h: int, w: int, top, left, box_h, box_w) -> jax.Array:

@@ -469,17 +469,3 @@ def test_compiled_once_for_new_keys():
   for s in range(3):
     aug(jax.random.key(s), x)
   assert len(traces) == 1
-
-
-@pytest.mark.parametrize("name", ["drq", "large_drq", "translate"])
-def test_pixel_gather_equals_the_axis_gathers(name, monkeypatch):
-  """The accelerators' one-gather `_gather` gives the CPU's two-gather pixels."""
-  factory = {"drq": augment.drq, "large_drq": lambda: augment.drq(12),
-             "translate": augment.translate}[name]
-  x = jnp.asarray(_images((6, 20, 17, 9), seed=4))
-  pair = (x, x[::-1])
-  want = _np(factory()(KEY, pair))  # built before the patch: `_gather_axes` on CPU
-  monkeypatch.setattr(augment, "_gather", augment._gather_pixels)
-  got = _np(factory()(KEY, pair))
-  for g, w in zip(got, want):
-    np.testing.assert_array_equal(g, w)

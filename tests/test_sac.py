@@ -533,8 +533,8 @@ def test_critic_loss_on_staged_inputs_equals_the_unstaged_one(agent, batch, beta
 
 def test_update_pair_is_the_same_with_and_without_staged_inputs(agent):
   batches = make_batch(3, leading=(2,))
-  off = dataclasses.replace(CONFIG, stage_inputs=False)
-  got = update_pair(agent, batches, jax.random.key(0), CONFIG)
+  on, off = (dataclasses.replace(CONFIG, stage_inputs=v) for v in (True, False))
+  got = update_pair(agent, batches, jax.random.key(0), on)
   want = update_pair(agent, batches, jax.random.key(0), off)
   _assert_tree(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7),
                got, want)

@@ -259,6 +259,10 @@ def sample(buffer: ReplayBuffer, key: jax.Array, batch_size: int) -> Batch:
     prev = chain[-1]
     chain.append(jnp.where(buffer.first[env, prev], prev, (prev - 1) % t))
   slots = jnp.stack(chain[::-1], axis=1)            # (B, k+1), oldest first
+  # Materialised here, so that the fusions that read the frames through them
+  # (stacks, augmentations, encoder inputs) read B·(k+1) indices instead of
+  # recomputing this arithmetic for every byte they write.
+  env, slots = jax.lax.optimization_barrier((env, slots))
   frames = buffer.frames[env[:, None], slots]       # (B, k+1, H, W, C)
   frames = jnp.moveaxis(frames, 1, 3)               # (B, H, W, k+1, C)
 

@@ -139,10 +139,10 @@ class SACConfig:
     decoder_weight_lambda: SAC+AE's decoder weight decay λ_w (1e-7).
     decoder_bits: bits per value of SAC+AE's reconstruction target (5).
     stage_inputs: how `update` computes the encoders' inputs (the same values
-      either way): True (default) writes the augmented, mixed uint8 observations
-      to memory once (`jax.lax.optimization_barrier`) before each distinct input
-      is cut into the first layer's blocks, once; False leaves XLA free to fuse
-      the sampling, augmentation and mixing into each of those inputs.
+      either way): False (default) leaves XLA free to fuse the sampling,
+      augmentation and mixing into each distinct input as it is cut into the
+      first layer's blocks; True first writes the augmented, mixed uint8
+      observations to memory once (`jax.lax.optimization_barrier`).
   """
   algo: str = "sac_aug"
   batch_size: int | None = None
@@ -169,7 +169,7 @@ class SACConfig:
   decoder_latent_lambda: float = 1e-6
   decoder_weight_lambda: float = 1e-7
   decoder_bits: int = 5
-  stage_inputs: bool = True
+  stage_inputs: bool = False
 
   def __post_init__(self):
     def fail(field, value, want):
