@@ -1,7 +1,7 @@
 """Experiment: the learner with some of an update's passes on a second GPU stream.
 
-`jax.experimental.compute_on.compute_on("gpu_stream:N")` around a jitted call makes
-XLA run that call asynchronously on compute stream N (``call-start``/``call-done``),
+`jax.experimental.compute_on` with ``compute_type="gpu_stream:N"`` makes XLA run the
+wrapped function asynchronously on compute stream N (``call-start``/``call-done``),
 so the passes that do not depend on the critic's gradient pass can overlap it:
 ``td``: the TD target (online and target encoders on o′, a′, Q′) on stream 1.
 ``blocks``: no stream; the actor's pass reuses the critic pass's prepared blocks
@@ -12,9 +12,9 @@ Usage (one variant per process, since XLA flags are read at start-up)::
     python benchmarks/scripts/learner_streams.py {main,td,blocks,td+blocks} [--check] [--pairs 25]
 
 Prints one JSON line: updates/s of `benchmarks.learner`'s scanned update (1 agent,
-bfloat16, batch 256, 84×84×9, DrQ), whether the compiled module holds an async
-call, and with ``--check`` the largest difference of the agent's parameters from
-main's after one call of the same update pairs.
+bfloat16, batch 256, 84×84×9, DrQ); with ``--check`` also the largest difference of
+the agent's parameters from main's after one call of two update pairs, and how many
+async calls the compiled module holds.
 """
 import argparse
 import json
