@@ -25,7 +25,10 @@ Per agent step of the pool env, for the whole batch:
    with `copy_obs=False`: observations are then views of the pool's shared
    memory, valid until the step after next — enough to store a transition).
 `env.timings` accumulates the seconds spent in each part (the JAX env: "step",
-the one jitted call, and "transfer", the observations and info to the host).
+the one jitted call, and "transfer", the observations and info to the host;
+with `obs_on_device` and the physics on the host CPU, `step_wait` returns once
+the physics is done and the frames are dispatched, without waiting for them, so
+"step" times the physics and that dispatch).
 
 `step` is `step_async` (checks the actions and dispatches the physics, without
 waiting for it) followed by `step_wait` (waits for the physics, renders,
@@ -638,7 +641,9 @@ class JaxPixelVectorEnv(_PixelEnvBase):
     """The step's frames and stacks: with the physics on the render device, the
     fused call `_step` already made them; else what the frames read of the
     physics (`render_inputs`) moves to the render device and
-    `jax_env.observe_inputs` renders there. Then the transfer to the host."""
+    `jax_env.observe_inputs` renders there, and with `obs_on_device` the frames
+    are not waited for (the caller's next device work queues behind them). Then
+    the transfer to the host."""
     if isinstance(es, jax_env.PixelState):
       ps, es = es, None
     else:
@@ -647,7 +652,8 @@ class JaxPixelVectorEnv(_PixelEnvBase):
       inputs = jax.device_put(inputs, self._render_on)
       ps = jax_env.observe_inputs(self.functional, self._ps.replace(physics=None), inputs,
                                   jax.device_put(resetting, self._render_on))
-    jax.block_until_ready(ps)
+    if es is None or not self.obs_on_device:
+      jax.block_until_ready(ps)
     t1 = time.perf_counter()
     obs, host = self._adopt(ps, reward, truncated, es=es)
     self.timings["step"] += t1 - t0

@@ -145,6 +145,31 @@ def test_env_with_physics_workers_matches_in_process_env():
   assert_close(runs[0][1], runs[1][1])
 
 
+@pytest.mark.slow
+def test_ray_caster_env_with_physics_workers_matches_its_fused_step():
+  # With the physics in workers the JAX env renders in a call of its own, which
+  # `step_wait` does not wait for when the observations stay on the device: they
+  # are still the fused in-process step's, across an episode end.
+  kw = dict(visual_seeds=[0, 1, 2], frame_skip=SKIP, image_size=16, renderer="jax",
+            physics_device="cpu")
+  runs = []
+  for extra in ({}, dict(physics_workers=2, obs_on_device=True)):
+    with dmcr_jax.make(TASK, N, **kw, **extra) as env:
+      obs, _ = env.reset(seed=4)
+      rng = np.random.default_rng(0)
+      steps = [(np.asarray(obs), None, None)]
+      for _ in range(EPISODE + 2):
+        obs, reward, _, truncated, _ = env.step(rng.uniform(-1, 1, (N, 1)))
+        steps.append((np.asarray(obs), reward, truncated))
+      runs.append(steps)
+  assert any(t.any() for _, _, t in runs[0][1:])  # an episode ended
+  for (obs_a, r_a, t_a), (obs_b, r_b, t_b) in zip(*runs, strict=True):
+    np.testing.assert_array_equal(obs_a, obs_b)
+    if r_a is not None:
+      np.testing.assert_allclose(r_a, r_b, rtol=1e-4, atol=1e-5)
+      np.testing.assert_array_equal(t_a, t_b)
+
+
 @pytest.mark.parametrize("workers,device,why", [
     (2, None, "needs physics_device='cpu'"), (-1, "cpu", "positive int"),
     (True, "cpu", "positive int")])

@@ -247,6 +247,25 @@ def test_host_and_device_drivers_train_identical_agents(tmp_path):
 
 
 @pytest.mark.slow
+def test_host_driver_trains_the_same_agents_whichever_it_dispatches_first(tmp_path,
+                                                                          monkeypatch):
+  # The host driver dispatches the physics before the updates when they share a
+  # device, else the updates first, before it waits for the actions (and the ray
+  # caster's env, its physics in a worker process, does not wait for the frames).
+  # The order moves work on the device's queue, not what it computes: with the
+  # ray caster, physics in a worker and one seed, the same agents bit for bit.
+  agents = {}
+  for first in (True, False):
+    monkeypatch.setattr(loop, "physics_before_updates", lambda device, first=first: first)
+    cfg = demo_run(tmp_path / str(first), steps=24, physics="cpu", physics_workers=1)
+    loop.train(cfg, progress=False)
+    _, agents[first], step = loop.load_run(cfg.out_dir)
+    assert step == 24 and int(agents[first].step[0]) > 0  # updates ran
+  for a, b in zip(jax.tree.leaves(agents[True]), jax.tree.leaves(agents[False]), strict=True):
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+@pytest.mark.slow
 def test_env_groups_step_in_turn_and_store_each_groups_own_frames(tmp_path, monkeypatch):
   # Two env groups (the host driver's double-buffered sampling): the groups store
   # in turn, each group's stored observations are its own consecutive frame

@@ -890,6 +890,18 @@ def one_device_note(k: int, available: int, devices: int | None, device_driver: 
   return None
 
 
+def physics_before_updates(physics_device: str | None) -> bool:
+  """Whether the host driver dispatches a step's physics before its updates.
+
+  True when they share a device (`physics_device` None, or a CPU backend): the
+  physics then leaves that device's queue first. Otherwise the updates are
+  launched first, before the actions are waited for, so that the device runs
+  them right after `act` while the host steps the physics. Either order computes
+  the same values.
+  """
+  return physics_device is None or jax.default_backend() == "cpu"
+
+
 def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
           devices: int | None = None) -> dict:
   """Trains `len(cfg.agents())` agents; returns a summary (also written as JSON).
@@ -940,7 +952,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
     learner = train_step.init_learner(put_agents(agents, mesh), put_agents(buffers, mesh),
                                       key, start, spec)
     put = lambda x: put_agents(jnp.asarray(x), mesh)
-    physics_first = physics_device is None or on_cpu
+    physics_first = physics_before_updates(physics_device)
     first_update = updates_from(cfg, start)
 
     def learn(learner, owed, ready, step):
@@ -981,23 +993,24 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
         if acting:  # group g acts and steps; the updates owed run meanwhile
           # (env groups: updates still in flight if no group was stored since)
           (learner, owed, ready), learning = settled(learning, (learner, owed, ready)), None
-          with log.timed("act"):  # includes waiting for the updates queued before
+          with log.timed("act"):
             o, f = put(obs[g]), put(first[g])
             learner, action, env_action = train_step.act_jit(learner, o, spec=spec,
                                                              mesh=mesh)
-            env_action = np.asarray(env_action)
           # The updates owed are launched from another thread (launching their
           # kernels holds a thread for a large part of their run) while this one
           # steps the env. Physics on the updates' device is dispatched first (it
           # then leaves the queue first, and the host renders while the updates
-          # run).
-          if physics_first:
-            with log.timed("env_step_async"):
-              envs[g].step_async(env_action)
-          learning = updates.submit(learn, learner, owed, ready, acted)
+          # run); else the updates are launched before the actions are waited
+          # for, so that they queue right behind `act` on the device.
           if not physics_first:
-            with log.timed("env_step_async"):
-              envs[g].step_async(env_action)
+            learning = updates.submit(learn, learner, owed, ready, acted)
+          with log.timed("act"):  # waits for what the device runs before `act`
+            env_action = np.asarray(env_action)
+          with log.timed("env_step_async"):
+            envs[g].step_async(env_action)
+          if physics_first:
+            learning = updates.submit(learn, learner, owed, ready, acted)
           in_flight[g] = (o, f, action)
           acted += n
         g = (g + 1) % groups  # the group stepped longest ago finishes and acts next
