@@ -63,6 +63,16 @@ def test_train_says_why_it_uses_one_of_several_devices():
   assert loop.one_device_note(3, 1, None, False) is None   # one there
 
 
+def test_train_says_how_to_draw_the_pools_frames_on_an_idle_gpu():
+  note = loop.shared_frames_note("pool", None, "gpu", 2, 1)
+  assert "--egl-devices 1" in note and "1 of the 2 GPUs stay idle" in note
+  assert "--egl-devices 2" in loop.shared_frames_note("pool", None, "gpu", 4, 2)
+  assert loop.shared_frames_note("pool", None, "gpu", 2, 2) is None    # learner on both
+  assert loop.shared_frames_note("pool", (1,), "gpu", 2, 1) is None    # already chosen
+  assert loop.shared_frames_note("jax", None, "gpu", 2, 1) is None     # no EGL frames
+  assert loop.shared_frames_note("pool", None, "cpu", 2, 1) is None    # no learner GPU
+
+
 def test_scaling_efficiency_is_the_rate_over_devices_times_the_one_device_rate():
   assert learner.scaling_efficiency(300.0, 100.0, 4) == 0.75
   assert learner.scaling_efficiency(100.0, 100.0, 1) == 1.0

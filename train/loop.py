@@ -890,6 +890,24 @@ def one_device_note(k: int, available: int, devices: int | None, device_driver: 
   return None
 
 
+def shared_frames_note(renderer: str, egl_devices, platform: str, available: int,
+                       used: int) -> str | None:
+  """How to keep the pool's frames off the learner's GPU, when some GPU is idle.
+
+  None unless the pool draws its frames on MuJoCo's default EGL device
+  (`egl_devices` None: neither `--egl-devices` nor `MUJOCO_EGL_DEVICE_ID` given)
+  on a GPU host (`platform` "gpu") whose learner uses `used` of its `available`
+  local devices and leaves at least one idle. That EGL device is usually the
+  learner's first GPU, where the frames slow the updates.
+  """
+  if renderer != "pool" or egl_devices is not None or platform != "gpu" or used >= available:
+    return None
+  return (f"the pool draws its frames on the first EGL device, usually the learner's "
+          f"GPU, where they slow the updates; {available - used} of the {available} GPUs "
+          f"stay idle: --egl-devices {used} draws the frames on the next one (EGL's "
+          "device order, usually the GPUs')")
+
+
 def physics_before_updates(physics_device: str | None) -> bool:
   """Whether the host driver dispatches a step's physics before its updates.
 
@@ -930,8 +948,12 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
   check_train_devices(cfg, devices)
   note = one_device_note(len(cfg.agents()), jax.local_device_count(), devices,
                          cfg.device_driver())
-  if note:
-    print(f"{cfg.task}: {note}", file=sys.stderr, flush=True)
+  frames_note = shared_frames_note(
+      cfg.renderer, cfg.egl_devices or os.environ.get("MUJOCO_EGL_DEVICE_ID"),
+      jax.default_backend(), jax.local_device_count(), mesh_devices(len(cfg.agents()), devices))
+  for line in (note, frames_note):
+    if line:
+      print(f"{cfg.task}: {line}", file=sys.stderr, flush=True)
   if cfg.device_driver():
     from dmcr_jax.train import device_loop
     return device_loop.train(cfg, resume=resume, progress=progress)
