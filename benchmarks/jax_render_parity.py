@@ -230,13 +230,13 @@ def main(argv=None) -> None:
   if args.json:
     with open(args.json) as f:
       table = parity_markdown([json.loads(line) for line in f if line.strip()])
-    with open(os.path.splitext(args.json)[0] + ".md", "w") as f:
-      f.write(f"Rows of `python -m dmcr_jax.benchmarks.jax_render_parity --json {args.json}` (the "
-              "JSONL beside this file holds each row's settings, platform and time): the "
-              "ray caster against `mujoco.Renderer` at visual seeds 0 … seeds − 1 × "
-              "dm_control states (`dm_states`); IoU of each body's silhouette against "
-              "MuJoCo's segmentation rendering, for bodies whose silhouettes (union) cover "
-              "at least `min. pixels`.\n\n" + table)
+    R.write_markdown(args.json, (
+        f"Rows of `python -m dmcr_jax.benchmarks.jax_render_parity --json {args.json}` (the "
+        "JSONL beside this file holds each row's settings, platform and time): the "
+        "ray caster against `mujoco.Renderer` at visual seeds 0 … seeds − 1 × "
+        "dm_control states (`dm_states`); IoU of each body's silhouette against "
+        "MuJoCo's segmentation rendering, for bodies whose silhouettes (union) cover "
+        "at least `min. pixels`.\n\n") + table)
     print(table)
   if args.out and rows:
     from PIL import Image

@@ -30,6 +30,7 @@ import os
 import re
 import statistics
 import subprocess
+import sys
 import time
 from typing import Callable, Sequence
 
@@ -95,11 +96,28 @@ def read(path: str) -> list[dict]:
   return out
 
 
+GENERATED_MARKER = ("<!-- written by a dmcr_jax benchmark from the JSONL rows beside; "
+                    "rewritten by its next run -->")
+
+
 def write_markdown(out: str, text: str) -> str:
-  """Writes `text` beside the JSONL file `out` (same name, ".md"); returns that path."""
-  path = os.path.splitext(out)[0] + ".md"
+  """Writes `text` beside the JSONL file `out` (same name, ".md"); returns that path.
+
+  The file starts with `GENERATED_MARKER`. A file of that name without the marker
+  (written by hand: notes, analysis) is left as it is, and the table goes to
+  "<name>_table.md" instead (said on stderr).
+  """
+  stem = os.path.splitext(out)[0]
+  path = stem + ".md"
+  if os.path.exists(path):
+    with open(path) as f:
+      first = f.readline().rstrip("\n")
+    if first != GENERATED_MARKER:
+      path = stem + "_table.md"
+      print(f"{stem}.md was not written by a benchmark; the table goes to {path}",
+            file=sys.stderr)
   with open(path, "w") as f:
-    f.write(text)
+    f.write(f"{GENERATED_MARKER}\n{text}")
   return path
 
 

@@ -175,17 +175,17 @@ def main(argv=None) -> None:
   text = markdown(rows)
   print(text)
   if args.out:
-    with open(os.path.splitext(args.out)[0] + ".md", "w") as f:
-      f.write(f"Rows of `python -m dmcr_jax.benchmarks.solver_budget` runs appended to "
-              f"`{os.path.basename(args.out)}`; the last: "
-              f"`python -m dmcr_jax.benchmarks.solver_budget {' '.join(argv)}`.\n\n"
-              "Mid-episode states × control steps (in each row), float32 MJX against "
-              "float64 dm_control (largest, and the median over start states of each state's "
-              "largest), and against MJX under the first budget (and matmul precision) run "
-              "for the task. "
-              "From contact-rich mid-episode states the absolute drift includes chaotic "
-              "divergence and sparse rewards flipping (ball_in_cup: 0 or 1); compare "
-              "budgets within a task.\n\n" + text)
+    R.write_markdown(args.out, (
+        f"Rows of `python -m dmcr_jax.benchmarks.solver_budget` runs appended to "
+        f"`{os.path.basename(args.out)}`; the last: "
+        f"`python -m dmcr_jax.benchmarks.solver_budget {' '.join(argv)}`.\n\n"
+        "Mid-episode states × control steps (in each row), float32 MJX against "
+        "float64 dm_control (largest, and the median over start states of each state's "
+        "largest), and against MJX under the first budget (and matmul precision) run "
+        "for the task. "
+        "From contact-rich mid-episode states the absolute drift includes chaotic "
+        "divergence and sparse rewards flipping (ball_in_cup: 0 or 1); compare "
+        "budgets within a task.\n\n") + text)
 
 
 def markdown(rows: list[dict]) -> str:

@@ -176,6 +176,38 @@ def _reached(r: dict) -> str:
   return f"never ≥ {r['threshold']:g}"
 
 
+def vector_step_ms(r: dict) -> dict | None:
+  """A run's steady loop per vector step (one step of all `num_envs` envs of an
+  agent), in milliseconds: "step" (wall time), "act", "env" (dispatch and wait),
+  "store", and, where the env reports them, "physics" and "frames"; "updates" is
+  what the learner alone needs for the step's `num_envs × utd` updates. None
+  without a steady window (the device driver keeps no host breakdown)."""
+  s = r.get("steady")
+  if not s or not s.get("steps"):
+    return None
+  per = 1000.0 * r["num_envs"] / s["steps"]
+  host, env = s.get("host_seconds", {}), s.get("env_seconds", {})
+  out = dict(step=s["wall_s"] * per, act=host.get("act", 0.0) * per,
+             env=(host.get("env_step_async", 0.0) + host.get("env_step_wait", 0.0)) * per,
+             store=host.get("store", 0.0) * per)
+  if "physics" in env and "render" in env:
+    out.update(physics=env["physics"] * per, frames=env["render"] * per)
+  if r.get("learner_updates_per_s"):
+    out["updates"] = 1000.0 * r["num_envs"] * (r.get("utd") or 1.0) / r["learner_updates_per_s"]
+  return out
+
+
+def _vector_step_text(r: dict) -> str:
+  ms = vector_step_ms(r)
+  if ms is None:
+    return "–"
+  text = f"{ms['step']:.1f}: act {ms['act']:.1f}, env {ms['env']:.1f}"
+  if "physics" in ms:
+    text += f" (physics {ms['physics']:.1f}, frames {ms['frames']:.1f})"
+  text += f", store {ms['store']:.1f}"
+  return text + (f"; updates alone {ms['updates']:.1f}" if "updates" in ms else "")
+
+
 def markdown(rows: list[dict]) -> str:
   """The rows as one Markdown table."""
   return R.table(rows, [
@@ -195,6 +227,7 @@ def markdown(rows: list[dict]) -> str:
       ("scaling", lambda r: R.fmt(r.get("scaling_efficiency"), ".2f")),
       ("learner alone updates/s", lambda r: R.fmt(r.get("learner_updates_per_s"), ",.1f")),
       ("ratio", lambda r: R.fmt(r.get("ratio"), ".2f")),
+      ("steady ms per vector step", _vector_step_text),
       ("first ≥ threshold (step, s)", _reached),
       ("final return", lambda r: R.fmt(r.get("final_return"), ".1f")),
       ("UTC", lambda r: r["time_utc"][11:16])])

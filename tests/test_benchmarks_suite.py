@@ -123,6 +123,18 @@ def test_the_table_writer_aligns_numbers_and_marks_missing_cells():
   assert R.device_slug("NVIDIA H100 80GB HBM3") == "h100" and R.device_slug(None) == "cpu"
 
 
+def test_a_table_beside_rows_never_replaces_a_hand_written_file(tmp_path, capsys):
+  out = str(tmp_path / "train_h200.jsonl")
+  assert R.write_markdown(out, "table 1") == str(tmp_path / "train_h200.md")
+  assert R.write_markdown(out, "table 2") == str(tmp_path / "train_h200.md")   # its own: rewritten
+  assert (tmp_path / "train_h200.md").read_text().splitlines()[1:] == ["table 2"]
+  (tmp_path / "train_h200.md").write_text("Analysis written by hand.\n")
+  assert R.write_markdown(out, "table 3") == str(tmp_path / "train_h200_table.md")
+  assert (tmp_path / "train_h200.md").read_text() == "Analysis written by hand.\n"
+  assert (tmp_path / "train_h200_table.md").read_text().endswith("table 3")
+  assert "train_h200_table.md" in capsys.readouterr().err
+
+
 def test_headline_summary_and_plot(tmp_path):
   rows = _all_rows()
   picked = report.headline(rows)
@@ -265,3 +277,19 @@ def test_step_profile_breakdown_and_training_threshold():
          dict(step="200", wall_s="7", episode_return="920")]
   assert first_reaching(log, 900) == dict(step=200, wall_s=7.0, episode_return=920.0)
   assert first_reaching(log, 990) is None
+
+
+def test_training_rows_break_a_steady_vector_step_down():
+  from dmcr_jax.benchmarks.training import markdown, vector_step_ms
+  steady = dict(steps=16000, wall_s=50.0,
+                host_seconds=dict(act=3.0, env_step_async=1.0, env_step_wait=44.0, store=1.5),
+                env_seconds=dict(physics=32.0, render=12.0))
+  r = dict(num_envs=32, utd=1.0, learner_updates_per_s=400.0, steady=steady)
+  ms = vector_step_ms(r)   # 500 vector steps of 32 envs
+  assert ms == pytest.approx(dict(step=100.0, act=6.0, env=90.0, store=3.0, physics=64.0,
+                                  frames=24.0, updates=80.0))
+  assert vector_step_ms(dict(num_envs=32)) is None   # the device driver: no breakdown
+  assert "100.0: act 6.0, env 90.0 (physics 64.0, frames 24.0), store 3.0; updates alone 80.0" \
+      in markdown([dict(r, device="d", task="t", agents=1, steps=24000, dtype="bfloat16",
+                        quality="exact", wall_s=1.0, process_s=2.0, transitions_per_s=3.0,
+                        threshold=900.0, time_utc="2026-11-28T19:15:33")])
