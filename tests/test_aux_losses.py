@@ -334,12 +334,22 @@ def test_block_first_layer_is_the_strided_conv():
   # Blocks padded to 64 channels (16-bit inputs on GPUs) convolve the same.
   assert [block_channel_multiple(dtype, platform) for dtype, platform in
           (("bfloat16", "gpu"), ("float32", "gpu"), ("bfloat16", "cpu"))] == [32, 8, 8]
-  (params, x, _), c_out = inputs[0], cases[0][3]
-  blocks = stride_two_blocks(x, channel_multiple=32)
-  assert blocks.data.shape[-1] == 64
-  expect = nn.Conv(c_out, (3, 3), strides=(2, 2), padding="VALID").apply(params, x)
-  np.testing.assert_allclose(StrideTwoConv(c_out).apply(params, blocks), expect, rtol=1e-5,
-                             atol=1e-5 * np.abs(expect).max())
+  # There frames of 3 channels take 4 each (9 → 16 per pixel): the same outputs and
+  # parameter gradients; elsewhere (8) the 36 channels in order, padded to 40.
+  for (params, x, _), (*_, c_in, c_out) in zip(inputs, cases):
+    for multiple in (32, 8):
+      blocks = stride_two_blocks(x, channel_multiple=multiple)
+      if c_in == 9:
+        assert (blocks.data.shape[-1], blocks.pixel_channels) == (
+            (64, 16) if multiple == 32 else (40, 9))
+      conv = nn.Conv(c_out, (3, 3), strides=(2, 2), padding="VALID")
+      expect = conv.apply(params, x)
+      np.testing.assert_allclose(StrideTwoConv(c_out).apply(params, blocks), expect,
+                                 rtol=1e-5, atol=1e-5 * np.abs(expect).max())
+      got, want = (jax.grad(lambda p, f=f: jnp.sum(jnp.sin(f(p))))(params) for f in (
+          lambda p: StrideTwoConv(c_out).apply(p, blocks), lambda p: conv.apply(p, x)))
+      for g, w in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+        np.testing.assert_allclose(g, w, rtol=1e-4, atol=1e-4 * np.abs(w).max())
   # The same key initialises it as it did nn.Conv, under the encoder's name.
   x = jnp.zeros((1, 84, 84, 9))
   got, expect = jax.jit(lambda key: (

@@ -91,32 +91,79 @@ class Blocks:
   """A `StrideTwoConv` input already cut into 2×2 blocks (`stride_two_blocks`).
 
   Attributes:
-    data: (B, (H − 3)//2 + 2, (W − 3)//2 + 2, 4·C rounded up to a multiple of
-      `block_channel_multiple`): `space_to_depth` of the image, zero channels last.
+    data: (B, (H − 3)//2 + 2, (W − 3)//2 + 2, 4·P rounded up to a multiple of
+      `block_channel_multiple`): `space_to_depth` of the image laid out with P
+      channels per pixel (`pixel_slots`), zero channels last.
     channels: C, the channels of the image (static; the kernel's input channels).
+    pixel_channels: P ≥ C, the channels per pixel before `space_to_depth` (static;
+      C: the image's channels in order).
   """
   data: jax.Array
   channels: int = flax.struct.field(pytree_node=False)
+  pixel_channels: int | None = flax.struct.field(pytree_node=False, default=None)
+
+  @property
+  def slots(self) -> np.ndarray:
+    """The pixel channel of each image channel (`pixel_slots`)."""
+    return pixel_slots(self.channels, self.pixel_channels or self.channels)
+
+
+def pixel_slots(channels: int, pixel_channels: int) -> np.ndarray:
+  """Where each image channel sits among a pixel's channels in `Blocks`.
+
+  Args:
+    channels: C, the image's channels.
+    pixel_channels: P: C (the channels in order), or the frame layout of
+      `pixel_layout` (frames of 3 channels, 4 channels each).
+
+  Returns:
+    int (C,): c itself, or 4·(c // 3) + c % 3.
+  """
+  c = np.arange(channels)
+  return c if pixel_channels == channels else 4 * (c // 3) + c % 3
+
+
+def pixel_layout(channels: int, channel_multiple: int) -> int:
+  """The channels per pixel `stride_two_blocks` lays an image's C channels out in.
+
+  Frames of 3 channels (C = 3·S) take 4 channels each, and S is rounded up to a
+  power of two, when the blocks then have no more channels than C in order padded
+  at the end: every block channel's pixel, frame and colour are then bit fields of
+  its index. Otherwise C.
+  """
+  if channels % 3:
+    return channels
+  grouped = 4 * (1 << (channels // 3 - 1).bit_length())
+  padded = lambda per_pixel: -(-4 * per_pixel // channel_multiple) * channel_multiple
+  return grouped if padded(grouped) <= padded(channels) else channels
 
 
 def stride_two_blocks(x: jax.Array, channel_multiple: int | None = None) -> Blocks:
   """The blocks `StrideTwoConv` convolves, for (B, H, W, C) images (H, W ≥ 3).
 
-  `space_to_depth` to (out_h + 1, out_w + 1) blocks (out = (side − 3)//2 + 1,
-  the convolution's output side), zero channels appended up to a multiple of
-  `channel_multiple` (default: `block_channel_multiple` of x's dtype); the dtype
-  is kept. Zero channels meet zero kernel rows: the convolution is unchanged.
+  The channels laid out per pixel (`pixel_layout`), `space_to_depth` to
+  (out_h + 1, out_w + 1) blocks (out = (side − 3)//2 + 1, the convolution's output
+  side), zero channels appended up to a multiple of `channel_multiple` (default:
+  `block_channel_multiple` of x's dtype); the dtype is kept. Zero channels meet
+  zero kernel rows: the convolution is unchanged.
   """
   if x.ndim != 4 or min(x.shape[1:3]) < 3:
     raise ValueError(f"expected (B, H, W, C) inputs with H, W ≥ 3, got shape {x.shape}")
   if channel_multiple is None:
     channel_multiple = block_channel_multiple(x.dtype)
+  channels = x.shape[-1]
+  per_pixel = pixel_layout(channels, channel_multiple)
+  if per_pixel != channels:  # frames of 3 channels as 4, frames to a power of two
+    frames = channels // 3
+    x = x.reshape(*x.shape[:3], frames, 3)
+    x = jnp.pad(x, ((0, 0),) * 3 + ((0, per_pixel // 4 - frames), (0, 1)))
+    x = x.reshape(*x.shape[:3], per_pixel)
   out_h, out_w = (x.shape[1] - 3) // 2 + 1, (x.shape[2] - 3) // 2 + 1
   blocks = space_to_depth(x, 2 * (out_h + 1), 2 * (out_w + 1))
   extra = -blocks.shape[-1] % channel_multiple
   if extra:
     blocks = jnp.pad(blocks, ((0, 0), (0, 0), (0, 0), (0, extra)))
-  return Blocks(blocks, x.shape[-1])
+  return Blocks(blocks, channels, per_pixel)
 
 
 def encoder_input(encoder: Encoder, obs: jax.Array) -> Blocks:
@@ -258,6 +305,10 @@ class StrideTwoConv(nn.Module):
     bias = self.param("bias", self.bias_init, (self.features,), jnp.float32)
     data, kernel, bias = nn.dtypes.promote_dtype(blocks.data, kernel, bias,
                                                  dtype=self.dtype)
+    per_pixel = blocks.pixel_channels or blocks.channels
+    if per_pixel != blocks.channels:  # the kernel's rows where the blocks' channels are
+      kernel = jnp.zeros(kernel.shape[:2] + (per_pixel,) + kernel.shape[3:], kernel.dtype
+                         ).at[:, :, blocks.slots].set(kernel)
     block_kernel = space_to_depth_kernel(kernel)
     extra = data.shape[-1] - block_kernel.shape[2]  # the blocks' zero channels
     if extra:
