@@ -100,12 +100,12 @@ class Blocks:
   """
   data: jax.Array
   channels: int = flax.struct.field(pytree_node=False)
-  pixel_channels: int | None = flax.struct.field(pytree_node=False, default=None)
+  pixel_channels: int = flax.struct.field(pytree_node=False)
 
   @property
   def slots(self) -> np.ndarray:
     """The pixel channel of each image channel (`pixel_slots`)."""
-    return pixel_slots(self.channels, self.pixel_channels or self.channels)
+    return pixel_slots(self.channels, self.pixel_channels)
 
 
 def pixel_slots(channels: int, pixel_channels: int) -> np.ndarray:
@@ -305,10 +305,9 @@ class StrideTwoConv(nn.Module):
     bias = self.param("bias", self.bias_init, (self.features,), jnp.float32)
     data, kernel, bias = nn.dtypes.promote_dtype(blocks.data, kernel, bias,
                                                  dtype=self.dtype)
-    per_pixel = blocks.pixel_channels or blocks.channels
-    if per_pixel != blocks.channels:  # the kernel's rows where the blocks' channels are
-      kernel = jnp.zeros(kernel.shape[:2] + (per_pixel,) + kernel.shape[3:], kernel.dtype
-                         ).at[:, :, blocks.slots].set(kernel)
+    if blocks.pixel_channels != blocks.channels:  # kernel rows where the blocks' channels are
+      kernel = jnp.zeros(kernel.shape[:2] + (blocks.pixel_channels,) + kernel.shape[3:],
+                         kernel.dtype).at[:, :, blocks.slots].set(kernel)
     block_kernel = space_to_depth_kernel(kernel)
     extra = data.shape[-1] - block_kernel.shape[2]  # the blocks' zero channels
     if extra:
