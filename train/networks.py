@@ -130,6 +130,14 @@ def pixel_layout(channels: int, channel_multiple: int) -> int:
   power of two, when the blocks then have no more channels than C in order padded
   at the end: every block channel's pixel, frame and colour are then bit fields of
   its index. Otherwise C.
+
+  Args:
+    channels: C, the image's channels (3 per frame for frame stacks).
+    channel_multiple: the multiple the block channels are padded to
+      (`block_channel_multiple`).
+
+  Returns:
+    P, the channels per pixel: 4·(S rounded up to a power of two), or C.
   """
   if channels % 3:
     return channels
