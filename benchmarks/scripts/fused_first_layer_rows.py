@@ -1,0 +1,171 @@
+"""Experiment: `fused_first_layer.py`'s Pallas kernel with rows carried, and for two kernels at once.
+
+A program per (transition, chunk of `rows_per` output rows) loops over its rows;
+per row it gathers only the two new image rows' (64 columns × 32 taps) tiles (taps
+kx, c of one ky, 27 of 32 used) and carries the third (ky = 0 is the previous row's
+ky = 2), then sums three K = 32 products on tensor cores: half the gathers of
+`fused_first_layer.py`'s kernel, and less zero padding. DrQ's noise comes from an
+int8 table XLA draws first (``table``) or is left out (``none``: not the same
+function, a lower bound). ``pair`` applies two kernels (as the online and target
+encoders do to o′) to the same gathered tiles; ``xla_pair`` is the learner's way,
+blocks built once and two cuDNN convolutions.
+
+Usage (from the repository root)::
+
+    python benchmarks/scripts/fused_first_layer_rows.py [--rows 256] [--slots 500] [--interpret]
+
+Prints the largest and mean difference from XLA's outputs, then µs per R rows
+(best of two rounds of five `lax.fori_loop`s of `--iters` calls).
+"""
+import argparse
+import functools
+import os
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+from jax.experimental import pallas as pl
+from jax.experimental.pallas import triton as plgpu
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import fused_first_layer as F  # noqa: E402 (this folder is not a package)
+from fused_first_layer import CH, FEAT, H, OUT, PAD, W, augment, networks  # noqa: E402
+
+
+def _kernel(frames_ref, base_ref, shift_ref, noise_ref, w_ref, b_ref, *out_refs, noise, rows_per, pair):
+  """Output rows y0 … y0 + rows_per − 1 of transition r, one or two kernels."""
+  r, chunk = pl.program_id(0), pl.program_id(1)
+  y0 = chunk * rows_per
+  x = jnp.arange(64, dtype=jnp.int32)[:, None]
+  t = jnp.arange(32, dtype=jnp.int32)[None, :]
+  kx, c = t // CH, t % CH
+  frame, ch = c // 3, c % 3
+  valid = (t < 3 * CH) & (x < OUT)
+  img_c = jnp.minimum(2 * x + kx, W - 1)
+  src_c = jnp.clip(img_c + shift_ref[r, 1] - PAD, 0, W - 1)
+  dy = shift_ref[r, 0]
+  base = jnp.where(frame == 0, base_ref[r, 0], jnp.where(frame == 1, base_ref[r, 1], base_ref[r, 2]))
+  col = base + src_c * 3 + ch
+  ncol = (r * H * W + img_c) * 3 + ch
+
+  def tile(img_r):
+    img_r = jnp.minimum(img_r, H - 1)
+    src_r = jnp.clip(img_r + dy - PAD, 0, H - 1)
+    pix = plgpu.load(frames_ref.at[col + src_r * (W * 3)], mask=valid, other=0).astype(jnp.int32)
+    if noise == "table":
+      n = plgpu.load(noise_ref.at[ncol + img_r * (W * 3)], mask=valid, other=0).astype(jnp.int32)
+      pix = jnp.clip(pix + n, 0, 255)
+    return jnp.where(valid, pix.astype(jnp.float32) / 255.0, 0.0).astype(jnp.bfloat16)
+
+  co = jnp.arange(FEAT, dtype=jnp.int32)[None, :]
+  nk = 2 if pair else 1
+  ws = [[w_ref[k, j] for j in range(3)] for k in range(nk)]
+  bs = [b_ref[k].astype(jnp.bfloat16).astype(jnp.float32)[None, :] for k in range(nk)]
+
+  def body(i, t0):
+    y = y0 + i
+    t1 = tile(2 * y + 1)
+    t2 = tile(2 * y + 2)
+    for k in range(nk):
+      acc = plgpu.dot(t0, ws[k][0]) + plgpu.dot(t1, ws[k][1]) + plgpu.dot(t2, ws[k][2])
+      out = jnp.maximum(acc.astype(jnp.bfloat16).astype(jnp.float32) + bs[k], 0.0)
+      plgpu.store(out_refs[k].at[r, jnp.minimum(y, OUT - 1), x, co], out.astype(jnp.bfloat16),
+                  mask=(x < OUT) & (y < OUT))
+    return t2
+
+  jax.lax.fori_loop(0, rows_per, body, tile(2 * y0))
+
+
+def rows_forward(frames, env, slots, dy, dx, seed, kernels, biases, *, noise="table", rows_per=11,
+                 warps=4, interpret=False):
+  """`fused_first_layer.xla_forward` for each of 1 or 2 (kernel (3, 3, 9, 32), bias) pairs: a tuple."""
+  t = frames.shape[1]
+  r = env.shape[0]
+  base = jnp.pad(((env[:, None] * t + slots) * (H * W * 3)).astype(jnp.int32), ((0, 0), (0, 1)))
+  shift = jnp.stack([dy, dx], 1).astype(jnp.int32)
+  w = jnp.stack([jnp.pad(k.reshape(3, 3 * CH, FEAT), ((0, 0), (0, 32 - 3 * CH), (0, 0))) for k in kernels]
+                ).astype(jnp.bfloat16)                                  # (nk, ky, 32, FEAT)
+  b = jnp.stack(biases)
+  if noise == "table":
+    table = jax.vmap(lambda s: augment._rounded_gaussian(s, (H, W, 3), 1.0))(seed).astype(jnp.int8).reshape(-1)
+  else:
+    table = jnp.zeros((8,), jnp.int8)
+  pair = len(kernels) == 2
+  call = pl.pallas_call(
+      functools.partial(_kernel, noise=noise, rows_per=rows_per, pair=pair),
+      grid=(r, -(-OUT // rows_per)),
+      out_shape=[jax.ShapeDtypeStruct((r, OUT, OUT, FEAT), jnp.bfloat16)] * len(kernels),
+      interpret=interpret,
+      compiler_params=None if interpret else plgpu.CompilerParams(num_warps=warps, num_stages=1))
+  return tuple(call(frames.reshape(-1), base, shift, table, w, b))
+
+
+def main():
+  p = argparse.ArgumentParser()
+  p.add_argument("--rows", type=int, default=256)
+  p.add_argument("--slots", type=int, default=500)
+  p.add_argument("--iters", type=int, default=50)
+  p.add_argument("--interpret", action="store_true")
+  a = p.parse_args()
+  ks = jax.random.split(jax.random.PRNGKey(0), 10)
+  envs = 32
+  frames = jax.random.bits(ks[0], (envs, a.slots, H, W, 3), jnp.uint8)
+  env = jax.random.randint(ks[1], (a.rows,), 0, envs)
+  slots = jax.random.randint(ks[2], (a.rows,), 0, a.slots - 3)[:, None] + jnp.arange(3)
+  dy = jax.random.randint(ks[3], (a.rows,), 0, 2 * PAD + 1)
+  dx = jax.random.randint(ks[4], (a.rows,), 0, 2 * PAD + 1)
+  seed = jax.random.bits(ks[5], (a.rows,), jnp.uint32)
+  k1 = 0.2 * jax.random.normal(ks[6], (3, 3, CH, FEAT), jnp.float32)
+  b1 = 0.1 * jax.random.normal(ks[7], (FEAT,), jnp.float32)
+  k2 = 0.2 * jax.random.normal(ks[8], (3, 3, CH, FEAT), jnp.float32)
+  b2 = 0.1 * jax.random.normal(ks[9], (FEAT,), jnp.float32)
+  base_args = (frames, env, slots, dy, dx, seed)
+  ref1 = jax.jit(F.xla_forward)(*base_args, k1, b1).astype(jnp.float32)
+  ref2 = jax.jit(F.xla_forward)(*base_args, k2, b2).astype(jnp.float32)
+  for rp in (11,):
+    got = jax.jit(functools.partial(rows_forward, rows_per=rp, interpret=a.interpret))(*base_args, [k1, k2], [b1, b2])
+    for ref, g in zip((ref1, ref2), got):
+      d = jnp.abs(ref - g.astype(jnp.float32))
+      print(f"rows_per {rp}: max {float(d.max()):.4g} mean {float(d.mean()):.3g} bit-equal {float(jnp.mean(d == 0)):.4f}", flush=True)
+  if a.interpret:
+    return
+
+  def xla_pair(frames, env, slots, dy, dx, seed):  # blocks once, two convs (as td_target)
+    rr = env.shape[0]
+    obs = jnp.moveaxis(frames[env[:, None], slots], 1, 3).reshape(rr, H, W, CH)
+    z = jax.vmap(F.DRQ.apply)({"dy": dy, "dx": dx, "noise_seed": seed}, obs)
+    blocks = networks.encoder_input(networks.Encoder(dtype="bfloat16"), z)
+    conv = networks.StrideTwoConv(FEAT, dtype="bfloat16")
+    o1 = jax.nn.relu(conv.apply({"params": {"kernel": k1, "bias": b1}}, blocks))
+    o2 = jax.nn.relu(conv.apply({"params": {"kernel": k2, "bias": b2}}, blocks))
+    return o1, o2
+
+  def looped(fn):
+    def body(i, acc):
+      outs = fn(frames, env, (slots + i) % a.slots, dy, dx, seed)
+      outs = outs if isinstance(outs, tuple) else (outs,)
+      return acc + sum(o[:, 0, 0, 0].astype(jnp.float32).sum() for o in outs)
+    return jax.jit(lambda: jax.lax.fori_loop(0, a.iters, body, 0.0))
+
+  variants = {"xla": looped(lambda *s: F.xla_forward(*s, k1, b1)), "xla_pair": looped(xla_pair)}
+  for noise, rp, wp in (("table", 6, 4), ("table", 11, 4), ("table", 11, 2), ("table", 21, 4), ("none", 11, 4)):
+    variants[f"rows{rp}_{noise}_w{wp}"] = looped(
+        lambda *s, noise=noise, rp=rp, wp=wp: rows_forward(*s, [k1], [b1], noise=noise, rows_per=rp, warps=wp))
+  variants["pair_rows11_table_w4"] = looped(
+      lambda *s: rows_forward(*s, [k1, k2], [b1, b2], noise="table", rows_per=11, warps=4))
+  for f in variants.values():
+    f().block_until_ready()
+  best = {}
+  for _ in range(2):
+    for name, f in variants.items():
+      t0 = time.perf_counter()
+      for _ in range(5):
+        f().block_until_ready()
+      best[name] = min(best.get(name, 1e9), (time.perf_counter() - t0) / (5 * a.iters))
+  for name, s in best.items():
+    print(f"{name:24s} {s * 1e6:8.1f} µs per {a.rows} rows", flush=True)
+
+
+if __name__ == "__main__":
+  main()
