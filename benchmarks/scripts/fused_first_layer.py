@@ -120,21 +120,49 @@ def pallas_forward(frames, env, slots, dy, dx, seed, kernel, bias, *, noise="has
   return call(frames.reshape(-1), base, shift, seed, table, w, bias)
 
 
-def main():
-  p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def random_inputs(keys, rows: int, slots: int):
+  """(frames, env, slots, dy, dx, seed): 32 envs' rings of `slots` random frames, and
+  `rows` transitions' stacks (3 consecutive slots), DrQ shifts and noise seeds,
+  from 6 keys."""
+  envs = 32
+  frames = jax.random.bits(keys[0], (envs, slots, H, W, 3), jnp.uint8)
+  env = jax.random.randint(keys[1], (rows,), 0, envs)
+  stacks = jax.random.randint(keys[2], (rows,), 0, slots - 3)[:, None] + jnp.arange(3)
+  dy = jax.random.randint(keys[3], (rows,), 0, 2 * PAD + 1)
+  dx = jax.random.randint(keys[4], (rows,), 0, 2 * PAD + 1)
+  seed = jax.random.bits(keys[5], (rows,), jnp.uint32)
+  return frames, env, stacks, dy, dx, seed
+
+
+def print_best_times(variants: dict, iters: int, rows: int) -> None:
+  """Prints µs per call of each jitted loop of `iters` calls (best of two rounds of five)."""
+  for f in variants.values():
+    f().block_until_ready()
+  best = {}
+  for _ in range(2):
+    for name, f in variants.items():
+      t0 = time.perf_counter()
+      for _ in range(5):
+        f().block_until_ready()
+      best[name] = min(best.get(name, 1e9), (time.perf_counter() - t0) / (5 * iters))
+  for name, seconds in best.items():
+    print(f"{name:24s} {seconds * 1e6:8.1f} µs per {rows} rows", flush=True)
+
+
+def parse_args(doc: str) -> argparse.Namespace:
+  """The command line both fused-layer scripts take (`doc`: the script's docstring)."""
+  p = argparse.ArgumentParser(description=doc.splitlines()[0])
   p.add_argument("--rows", type=int, default=256, help="R, transitions per call")
   p.add_argument("--slots", type=int, default=500, help="ring slots per env of the frames (32 envs)")
   p.add_argument("--iters", type=int, default=50, help="calls per timed loop")
-  p.add_argument("--interpret", action="store_true")
-  a = p.parse_args()
+  p.add_argument("--interpret", action="store_true", help="Pallas's interpreter; compare only")
+  return p.parse_args()
+
+
+def main():
+  a = parse_args(__doc__)
   ks = jax.random.split(jax.random.PRNGKey(0), 8)
-  envs = 32
-  frames = jax.random.bits(ks[0], (envs, a.slots, H, W, 3), jnp.uint8)
-  env = jax.random.randint(ks[1], (a.rows,), 0, envs)
-  slots = jax.random.randint(ks[2], (a.rows,), 0, a.slots - 3)[:, None] + jnp.arange(3)
-  dy = jax.random.randint(ks[3], (a.rows,), 0, 2 * PAD + 1)
-  dx = jax.random.randint(ks[4], (a.rows,), 0, 2 * PAD + 1)
-  seed = jax.random.bits(ks[5], (a.rows,), jnp.uint32)
+  frames, env, slots, dy, dx, seed = random_inputs(ks[:6], a.rows, a.slots)
   kernel = 0.2 * jax.random.normal(ks[6], (3, 3, CH, FEAT), jnp.float32)
   bias = 0.1 * jax.random.normal(ks[7], (FEAT,), jnp.float32)
   args = (frames, env, slots, dy, dx, seed, kernel, bias)
@@ -158,17 +186,7 @@ def main():
   for noise in ("hash", "table", "none"):
     for warps in (2, 4):
       variants[f"pallas_{noise}_w{warps}"] = looped(pallas_forward, noise=noise, warps=warps)
-  for f in variants.values():
-    f().block_until_ready()
-  best = {}
-  for _ in range(2):
-    for name, f in variants.items():
-      t0 = time.perf_counter()
-      for _ in range(5):
-        f().block_until_ready()
-      best[name] = min(best.get(name, 1e9), (time.perf_counter() - t0) / (5 * a.iters))
-  for name, s in best.items():
-    print(f"{name:18s} {s * 1e6:8.1f} µs per {a.rows} rows", flush=True)
+  print_best_times(variants, a.iters, a.rows)
 
 
 if __name__ == "__main__":

@@ -17,11 +17,9 @@ Usage (from the repository root)::
 Prints the largest and mean difference from XLA's outputs, then µs per R rows
 (best of two rounds of five `lax.fori_loop`s of `--iters` calls).
 """
-import argparse
 import functools
 import os
 import sys
-import time
 
 import jax
 import jax.numpy as jnp
@@ -102,20 +100,9 @@ def rows_forward(frames, env, slots, dy, dx, seed, kernels, biases, *, noise="ta
 
 
 def main():
-  p = argparse.ArgumentParser()
-  p.add_argument("--rows", type=int, default=256)
-  p.add_argument("--slots", type=int, default=500)
-  p.add_argument("--iters", type=int, default=50)
-  p.add_argument("--interpret", action="store_true")
-  a = p.parse_args()
+  a = F.parse_args(__doc__)
   ks = jax.random.split(jax.random.PRNGKey(0), 10)
-  envs = 32
-  frames = jax.random.bits(ks[0], (envs, a.slots, H, W, 3), jnp.uint8)
-  env = jax.random.randint(ks[1], (a.rows,), 0, envs)
-  slots = jax.random.randint(ks[2], (a.rows,), 0, a.slots - 3)[:, None] + jnp.arange(3)
-  dy = jax.random.randint(ks[3], (a.rows,), 0, 2 * PAD + 1)
-  dx = jax.random.randint(ks[4], (a.rows,), 0, 2 * PAD + 1)
-  seed = jax.random.bits(ks[5], (a.rows,), jnp.uint32)
+  frames, env, slots, dy, dx, seed = F.random_inputs(ks[:6], a.rows, a.slots)
   k1 = 0.2 * jax.random.normal(ks[6], (3, 3, CH, FEAT), jnp.float32)
   b1 = 0.1 * jax.random.normal(ks[7], (FEAT,), jnp.float32)
   k2 = 0.2 * jax.random.normal(ks[8], (3, 3, CH, FEAT), jnp.float32)
@@ -154,17 +141,7 @@ def main():
         lambda *s, noise=noise, rp=rp, wp=wp: rows_forward(*s, [k1], [b1], noise=noise, rows_per=rp, warps=wp))
   variants["pair_rows11_table_w4"] = looped(
       lambda *s: rows_forward(*s, [k1, k2], [b1, b2], noise="table", rows_per=11, warps=4))
-  for f in variants.values():
-    f().block_until_ready()
-  best = {}
-  for _ in range(2):
-    for name, f in variants.items():
-      t0 = time.perf_counter()
-      for _ in range(5):
-        f().block_until_ready()
-      best[name] = min(best.get(name, 1e9), (time.perf_counter() - t0) / (5 * a.iters))
-  for name, s in best.items():
-    print(f"{name:24s} {s * 1e6:8.1f} µs per {a.rows} rows", flush=True)
+  F.print_best_times(variants, a.iters, a.rows)
 
 
 if __name__ == "__main__":
