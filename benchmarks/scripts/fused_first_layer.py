@@ -48,21 +48,19 @@ DRQ = augment.drq()
 
 def xla_forward(frames, env, slots, dy, dx, seed, kernel, bias):
   """The learner's way: (R, 41, 41, 32) bfloat16 ReLU outputs."""
+  return xla_forwards(frames, env, slots, dy, dx, seed, [(kernel, bias)])[0]
+
+
+def xla_forwards(frames, env, slots, dy, dx, seed, layers):
+  """`xla_forward` for each (kernel, bias) of `layers` on the same blocks, built
+  once (as the learner's online and target encoders share o′'s): a tuple."""
   r = env.shape[0]
   obs = jnp.moveaxis(frames[env[:, None], slots], 1, 3).reshape(r, H, W, CH)
   z = jax.vmap(DRQ.apply)({"dy": dy, "dx": dx, "noise_seed": seed}, obs)
   blocks = networks.encoder_input(networks.Encoder(dtype="bfloat16"), z)
   conv = networks.StrideTwoConv(FEAT, dtype="bfloat16")
-  return jax.nn.relu(conv.apply({"params": {"kernel": kernel, "bias": bias}}, blocks))
-
-
-def _hash32(x):
-  """`augment._hash32`, restated for the kernel."""
-  x = x ^ (x >> 16)
-  x = x * jnp.uint32(0x7FEB352D)
-  x = x ^ (x >> 15)
-  x = x * jnp.uint32(0x846CA68B)
-  return x ^ (x >> 16)
+  return tuple(jax.nn.relu(conv.apply({"params": {"kernel": k, "bias": b}}, blocks))
+               for k, b in layers)
 
 
 def _kernel(frames_ref, base_ref, shift_ref, seed_ref, noise_ref, w_ref, b_ref, out_ref, *,
@@ -84,7 +82,7 @@ def _kernel(frames_ref, base_ref, shift_ref, seed_ref, noise_ref, w_ref, b_ref, 
                    other=0).astype(jnp.int32)
   idx = (img_r * W + img_c) * 3 + ch
   if noise == "hash":
-    u = _hash32(_hash32(idx.astype(jnp.uint32)) ^ seed_ref[r]) >> 16
+    u = augment._hash32(augment._hash32(idx.astype(jnp.uint32)) ^ seed_ref[r]) >> 16
     n = jnp.zeros(u.shape, jnp.int32)
     for threshold in THRESHOLDS:
       n += (u >= jnp.uint32(threshold)).astype(jnp.int32)

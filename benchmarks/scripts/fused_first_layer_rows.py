@@ -28,7 +28,7 @@ from jax.experimental.pallas import triton as plgpu
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import fused_first_layer as F  # noqa: E402 (this folder is not a package)
-from fused_first_layer import CH, FEAT, H, OUT, PAD, W, augment, networks  # noqa: E402
+from fused_first_layer import CH, FEAT, H, OUT, PAD, W, augment  # noqa: E402
 
 
 def _kernel(frames_ref, base_ref, shift_ref, noise_ref, w_ref, b_ref, *out_refs, noise, rows_per, pair):
@@ -118,15 +118,7 @@ def main():
   if a.interpret:
     return
 
-  def xla_pair(frames, env, slots, dy, dx, seed):  # blocks once, two convs (as td_target)
-    rr = env.shape[0]
-    obs = jnp.moveaxis(frames[env[:, None], slots], 1, 3).reshape(rr, H, W, CH)
-    z = jax.vmap(F.DRQ.apply)({"dy": dy, "dx": dx, "noise_seed": seed}, obs)
-    blocks = networks.encoder_input(networks.Encoder(dtype="bfloat16"), z)
-    conv = networks.StrideTwoConv(FEAT, dtype="bfloat16")
-    o1 = jax.nn.relu(conv.apply({"params": {"kernel": k1, "bias": b1}}, blocks))
-    o2 = jax.nn.relu(conv.apply({"params": {"kernel": k2, "bias": b2}}, blocks))
-    return o1, o2
+  xla_pair = lambda *s: F.xla_forwards(*s, [(k1, b1), (k2, b2)])
 
   def looped(fn):
     def body(i, acc):
