@@ -142,8 +142,13 @@ def pixel_layout(channels: int, channel_multiple: int) -> int:
   if channels % 3:
     return channels
   grouped = 4 * (1 << (channels // 3 - 1).bit_length())
-  padded = lambda per_pixel: -(-4 * per_pixel // channel_multiple) * channel_multiple
+  padded = lambda per_pixel: _round_up(4 * per_pixel, channel_multiple)
   return grouped if padded(grouped) <= padded(channels) else channels
+
+
+def _round_up(n: int, multiple: int) -> int:
+  """The least multiple of `multiple` that is ≥ n: the block channels with their zero channels."""
+  return -(-n // multiple) * multiple
 
 
 def stride_two_blocks(x: jax.Array, channel_multiple: int | None = None) -> Blocks:
@@ -168,7 +173,7 @@ def stride_two_blocks(x: jax.Array, channel_multiple: int | None = None) -> Bloc
     x = x.reshape(*x.shape[:3], per_pixel)
   out_h, out_w = (x.shape[1] - 3) // 2 + 1, (x.shape[2] - 3) // 2 + 1
   blocks = space_to_depth(x, 2 * (out_h + 1), 2 * (out_w + 1))
-  extra = -blocks.shape[-1] % channel_multiple
+  extra = _round_up(blocks.shape[-1], channel_multiple) - blocks.shape[-1]
   if extra:
     blocks = jnp.pad(blocks, ((0, 0), (0, 0), (0, 0), (0, extra)))
   return Blocks(blocks, channels, per_pixel)
