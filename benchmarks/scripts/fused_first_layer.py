@@ -101,21 +101,29 @@ def _kernel(frames_ref, base_ref, shift_ref, seed_ref, noise_ref, w_ref, b_ref, 
 def pallas_forward(frames, env, slots, dy, dx, seed, kernel, bias, *, noise="hash", warps=4,
                    interpret=False):
   """`xla_forward` as one Pallas kernel (``noise="none"``: without DrQ's noise)."""
-  t = frames.shape[1]
   r = env.shape[0]
+  flat, base, shift, table = kernel_operands(frames, env, slots, dy, dx, seed, noise)
+  w = jnp.pad(kernel.reshape(9 * CH, FEAT), ((0, 128 - 9 * CH), (0, 0))).astype(jnp.bfloat16)
+  call = pl.pallas_call(
+      functools.partial(_kernel, noise=noise), grid=(r, OUT),
+      out_shape=jax.ShapeDtypeStruct((r, OUT, OUT, FEAT), jnp.bfloat16), interpret=interpret,
+      compiler_params=None if interpret else plgpu.CompilerParams(num_warps=warps, num_stages=1))
+  return call(flat, base, shift, seed, table, w, bias)
+
+
+def kernel_operands(frames, env, slots, dy, dx, seed, noise):
+  """What the Pallas kernels read besides the weights: (the frames' bytes flat, int32 (R, 4)
+  byte offsets of each stack's frames (the last 0), int32 (R, 2) DrQ shifts (dy, dx), and
+  the noise: ``noise="table"``, int8 (R·H·W·3) `augment.drq`'s noise; otherwise 8 zeros)."""
+  t = frames.shape[1]
   base = jnp.pad(((env[:, None] * t + slots) * (H * W * 3)).astype(jnp.int32), ((0, 0), (0, 1)))
   shift = jnp.stack([dy, dx], 1).astype(jnp.int32)
-  w = jnp.pad(kernel.reshape(9 * CH, FEAT), ((0, 128 - 9 * CH), (0, 0))).astype(jnp.bfloat16)
   if noise == "table":
     table = jax.vmap(lambda s: augment._rounded_gaussian(s, (H, W, 3), 1.0))(seed)
     table = table.astype(jnp.int8).reshape(-1)
   else:
     table = jnp.zeros((8,), jnp.int8)
-  call = pl.pallas_call(
-      functools.partial(_kernel, noise=noise), grid=(r, OUT),
-      out_shape=jax.ShapeDtypeStruct((r, OUT, OUT, FEAT), jnp.bfloat16), interpret=interpret,
-      compiler_params=None if interpret else plgpu.CompilerParams(num_warps=warps, num_stages=1))
-  return call(frames.reshape(-1), base, shift, seed, table, w, bias)
+  return frames.reshape(-1), base, shift, table
 
 
 def random_inputs(keys, rows: int, slots: int):
