@@ -15,8 +15,8 @@ convolutions and dense layers (parameters stay float32; LayerNorm, tanh and the
 policy's log-densities are computed in float32): "bfloat16" halves the memory
 traffic of the convolutions on GPUs (benchmarks/learner.py measures it).
 The stride-2 first convolution is computed on 2×2 pixel blocks (`StrideTwoConv`:
-the same function and parameters as `nn.Conv`, faster on GPUs); for 16-bit
-networks on GPUs the stride-1 convolutions and the dense layer read 2×2 blocks too
+the same function and parameters as `nn.Conv`, faster on GPUs); on GPUs the
+stride-1 convolutions and the dense layer read 2×2 blocks too
 (`BlockConv`, `BlockDense`: again the same function and parameters). `encoder_input`
 does the encoder's input work (crop, /255, 2×2 blocks) once, as `Blocks`, so that
 several passes over the same observations (online and target encoders) share it.
@@ -83,7 +83,7 @@ class Encoder(nn.Module):
     # Stride 2, as blocks (see StrideTwoConv).
     x = nn.relu(StrideTwoConv(self.channels, kernel_init=_CONV_INIT, dtype=self.dtype,
                               name="conv0")(x))
-    on_blocks = self.blocks if self.blocks is not None else stride_one_on_blocks(self.dtype)
+    on_blocks = self.blocks if self.blocks is not None else stride_one_on_blocks()
     out_h, out_w = (side - 2 * (self.num_layers - 1) for side in x.shape[1:3])
     if on_blocks:
       x = space_to_depth(x, _round_up(x.shape[1], 2), _round_up(x.shape[2], 2))
@@ -278,21 +278,20 @@ def block_channel_multiple(dtype, platform: str | None = None) -> int:
   return 32 if platform == "gpu" and jnp.dtype(dtype).itemsize == 2 else 8
 
 
-def stride_one_on_blocks(dtype, platform: str | None = None) -> bool:
+def stride_one_on_blocks(platform: str | None = None) -> bool:
   """Whether `Encoder` computes its stride-1 layers on 2×2 blocks (`BlockConv`).
 
   Args:
-    dtype: the encoder's compute dtype.
     platform: the backend the convolutions run on (default: JAX's default backend).
 
   Returns:
-    True for 16-bit floats on GPUs, where cuDNN runs the blocks' 128 channels
-    faster than the pixels' 32, although they take more multiply-adds
-    (benchmarks/results/training_h200.md, twenty-second section); False
-    otherwise (on CPUs the extra multiply-adds cost more than they save).
+    True on GPUs, where cuDNN runs the blocks' 4× channels faster than the pixels'
+    (32 in the paper's encoder, in bfloat16 and in float32) although they take 16/9
+    of the multiply-adds (benchmarks/results/training_h200.md, twenty-second
+    section); False elsewhere (on CPUs the extra multiply-adds cost more than
+    they save).
   """
-  platform = platform or jax.default_backend()
-  return platform == "gpu" and jnp.dtype(dtype).itemsize == 2
+  return (platform or jax.default_backend()) == "gpu"
 
 
 def stride_one_block_kernel(kernel: jax.Array) -> jax.Array:
