@@ -15,9 +15,10 @@ import numpy as np
 import pytest
 
 from dmcr_jax.train import curl, loop, sac, sac_ae
-from dmcr_jax.train.networks import (Decoder, StrideTwoConv, StrideTwoConvTranspose,
-                                     block_channel_multiple, center_crop, encoder_sides,
-                                     stride_two_blocks)
+from dmcr_jax.train.networks import (BlockConv, BlockDense, Decoder, Encoder, StrideTwoConv,
+                                     StrideTwoConvTranspose, block_channel_multiple,
+                                     center_crop, encoder_sides, space_to_depth,
+                                     stride_one_on_blocks, stride_two_blocks)
 
 pytestmark = pytest.mark.xdist_group("aux_losses")
 
@@ -359,3 +360,75 @@ def test_block_first_layer_is_the_strided_conv():
   assert jax.tree_util.tree_all(jax.tree_util.tree_map(np.array_equal, got, expect))
   with pytest.raises(ValueError, match="H, W ≥ 3"):
     StrideTwoConv(4).init(jax.random.key(0), jnp.zeros((1, 2, 5, 3)))
+
+
+def _blocks(x):
+  """`space_to_depth` of (B, H, W, C) images, odd sides padded by one zero pixel."""
+  return space_to_depth(x, x.shape[1] + x.shape[1] % 2, x.shape[2] + x.shape[2] % 2)
+
+
+def _pixels(blocks, height, width):
+  """The inverse of `_blocks`: the first height × width pixels of the blocks."""
+  b, h, w, c4 = blocks.shape
+  x = blocks.reshape(b, h, w, 2, 2, c4 // 4).transpose(0, 1, 3, 2, 4, 5)
+  return x.reshape(b, 2 * h, 2 * w, c4 // 4)[:, :height, :width]
+
+
+def test_block_stride_one_layers_are_the_convolutions_and_the_dense_layer():
+  # BlockConv between 2×2 blocks and back must compute nn.Conv(3×3, VALID) of the same
+  # params, BlockDense nn.Dense of the flattened image (the blocks' pixels past the
+  # image ignored): the same outputs and gradients (params and input), for even and
+  # odd sides (the encoder's 41), non-square inputs.
+  rng = np.random.default_rng(2)
+  normal = lambda *shape: jnp.asarray(rng.normal(size=shape), jnp.float32)
+  conv_cases = [(41, 41, 32, 32), (20, 21, 3, 5), (3, 4, 2, 3), (6, 7, 1, 1)]
+  on_blocks = lambda layer, h, w: type("OnBlocks", (), {"apply": staticmethod(
+      lambda p, x: _pixels(layer.apply(p, _blocks(x)), h - 2, w - 2))})
+  assert_same_layer(
+      conv_cases,
+      [({"params": {"kernel": normal(3, 3, c_in, c_out), "bias": normal(c_out)}},
+        normal(2, h, w, c_in), normal(2, h - 2, w - 2, c_out)) for h, w, c_in, c_out in conv_cases],
+      [(on_blocks(BlockConv(c_out), h, w), nn.Conv(c_out, (3, 3), padding="VALID"))
+       for h, w, _, c_out in conv_cases])
+  # The image is the first H × W pixels of larger blocks: the rest must not count.
+  dense_cases = [(35, 35, 32, 50, 1), (5, 4, 3, 7, 2), (1, 1, 1, 1, 0)]
+  with_rest = lambda layer, extra: type("WithRest", (), {"apply": staticmethod(
+      lambda p, x: layer.apply(p, _blocks(jnp.pad(x, ((0, 0), (0, extra), (0, extra), (0, 0)),
+                                                  constant_values=7.0))))})
+  flat_dense = lambda features: type("FlatDense", (), {"apply": staticmethod(
+      lambda p, x: nn.Dense(features).apply(p, x.reshape(x.shape[0], -1)))})
+  assert_same_layer(
+      dense_cases,
+      [({"params": {"kernel": normal(h * w * c, f), "bias": normal(f)}},
+        normal(2, h, w, c), normal(2, f)) for h, w, c, f, _ in dense_cases],
+      [(with_rest(BlockDense(f, (h, w)), extra), flat_dense(f))
+       for h, w, _, f, extra in dense_cases])
+  with pytest.raises(ValueError, match="2×2 blocks"):
+    BlockConv(4).init(jax.random.key(0), jnp.zeros((1, 3, 3, 6)))
+  with pytest.raises(ValueError, match="do not hold a 5×4 image"):
+    BlockDense(3, (5, 4)).init(jax.random.key(0), jnp.zeros((1, 2, 2, 4)))
+
+
+def test_encoder_on_blocks_is_the_encoder_on_pixels():
+  # Encoder(blocks=True) must be the same function of the same parameters as on
+  # pixels: the same initial parameters from one key, outputs and gradients; at the
+  # paper's size, CURL's crop, sides that leave one output pixel, a single layer.
+  assert [stride_one_on_blocks(platform) for platform in ("gpu", "cpu", "tpu")] == [
+      True, False, False]
+  rng = np.random.default_rng(3)
+  for side, layers, channels, input_size in ((84, 4, 32, None), (100, 4, 4, 84),
+                                             (15, 4, 4, None), (16, 2, 3, None),
+                                             (84, 1, 4, None)):
+    obs = jnp.asarray(rng.integers(0, 256, (2, side, side, 9)), jnp.uint8)
+    pixels = Encoder(channels=channels, feature_dim=6, num_layers=layers,
+                     input_size=input_size, blocks=False)
+    blocks = pixels.clone(blocks=True)
+    params, block_params = (e.init(jax.random.key(4), obs) for e in (pixels, blocks))
+    assert jax.tree_util.tree_all(jax.tree_util.tree_map(np.array_equal, params, block_params))
+    case = (side, layers, input_size)
+    expect, got = (e.apply(params, obs) for e in (pixels, blocks))
+    np.testing.assert_allclose(got, expect, rtol=1e-5, atol=1e-5, err_msg=str(case))
+    want, grads = (jax.grad(lambda p, e=e: jnp.sum(jnp.sin(3 * e.apply(p, obs))))(params)
+                   for e in (pixels, blocks))
+    for g, w in zip(jax.tree_util.tree_leaves(grads), jax.tree_util.tree_leaves(want)):
+      np.testing.assert_allclose(g, w, rtol=1e-4, atol=1e-4 * np.abs(w).max(), err_msg=str(case))

@@ -130,8 +130,12 @@ def encoder_invariance(run_dir: str, out_dir: str, agent: int = 0, looks: int = 
 
 
 def conv_activations(encoder, params, obs: jax.Array) -> list[jax.Array]:
-  """The channel mean of every ReLU'd convolution of `encoder`: [(B, h_i, w_i)]."""
-  _, state = encoder.apply(params, obs, capture_intermediates=lambda m, _: isinstance(m, CONV_LAYERS),
+  """The channel mean of every ReLU'd convolution of `encoder`: [(B, h_i, w_i)].
+
+  The encoder runs on pixels (``blocks=False``: the same function) so that every
+  layer's output is an image.
+  """
+  _, state = encoder.clone(blocks=False).apply(params, obs, capture_intermediates=lambda m, _: isinstance(m, CONV_LAYERS),
                            mutable=["intermediates"])
   inter = state["intermediates"]
   names = sorted((k for k in inter if k.startswith("conv")), key=lambda k: int(k[4:]))

@@ -15,7 +15,9 @@ convolutions and dense layers (parameters stay float32; LayerNorm, tanh and the
 policy's log-densities are computed in float32): "bfloat16" halves the memory
 traffic of the convolutions on GPUs (benchmarks/learner.py measures it).
 The stride-2 first convolution is computed on 2×2 pixel blocks (`StrideTwoConv`:
-the same function and parameters as `nn.Conv`, faster on GPUs). `encoder_input`
+the same function and parameters as `nn.Conv`, faster on GPUs); on GPUs the
+stride-1 convolutions and the dense layer read 2×2 blocks too
+(`BlockConv`, `BlockDense`: again the same function and parameters). `encoder_input`
 does the encoder's input work (crop, /255, 2×2 blocks) once, as `Blocks`, so that
 several passes over the same observations (online and target encoders) share it.
 `Decoder` is SAC+AE's deconvolutional decoder, the encoder mirrored back to the
@@ -24,6 +26,7 @@ observation's size; `Encoder.input_size` center-crops larger inputs (CURL).
 
 from __future__ import annotations
 
+import functools
 import math
 
 import flax.linen as nn
@@ -51,12 +54,16 @@ class Encoder(nn.Module):
     dtype: compute dtype of the convolutions and the dense layer.
     input_size: None, or the side the convolutions see: larger inputs are
       center-cropped to it (CURL renders 100 and crops to 84).
+    blocks: compute the stride-1 convolutions and the dense layer on 2×2 pixel
+      blocks (`BlockConv`, `BlockDense`; the same function of the same
+      parameters); None: where that is faster (`stride_one_on_blocks`).
   """
   channels: int = 32
   feature_dim: int = 50
   num_layers: int = 4
   dtype: str = "float32"
   input_size: int | None = None
+  blocks: bool | None = None
 
   @nn.compact
   def __call__(self, obs: jax.Array | Blocks) -> jax.Array:
@@ -73,16 +80,24 @@ class Encoder(nn.Module):
       float32 (B, feature_dim), each entry in (−1, 1).
     """
     x = obs if isinstance(obs, Blocks) else encoder_input(self, obs)
-    for i in range(self.num_layers):
-      if i == 0:  # stride 2, as blocks (see StrideTwoConv)
-        layer = StrideTwoConv(self.channels, kernel_init=_CONV_INIT, dtype=self.dtype,
-                              name="conv0")
-      else:
-        layer = nn.Conv(self.channels, (3, 3), padding="VALID", kernel_init=_CONV_INIT,
-                        bias_init=nn.initializers.zeros, dtype=self.dtype, name=f"conv{i}")
-      x = nn.relu(layer(x))
-    x = x.reshape(x.shape[0], -1)
-    x = nn.Dense(self.feature_dim, kernel_init=_DENSE_INIT, dtype=self.dtype, name="fc")(x)
+    # Stride 2, as blocks (see StrideTwoConv).
+    x = nn.relu(StrideTwoConv(self.channels, kernel_init=_CONV_INIT, dtype=self.dtype,
+                              name="conv0")(x))
+    on_blocks = self.blocks if self.blocks is not None else stride_one_on_blocks()
+    out_h, out_w = (side - 2 * (self.num_layers - 1) for side in x.shape[1:3])
+    if on_blocks:
+      x = space_to_depth(x, _round_up(x.shape[1], 2), _round_up(x.shape[2], 2))
+    conv = BlockConv if on_blocks else functools.partial(nn.Conv, kernel_size=(3, 3),
+                                                         padding="VALID")
+    for i in range(1, self.num_layers):
+      x = nn.relu(conv(self.channels, kernel_init=_CONV_INIT, bias_init=nn.initializers.zeros,
+                       dtype=self.dtype, name=f"conv{i}")(x))
+    if on_blocks:
+      x = BlockDense(self.feature_dim, (out_h, out_w), kernel_init=_DENSE_INIT,
+                     dtype=self.dtype, name="fc")(x)
+    else:
+      x = nn.Dense(self.feature_dim, kernel_init=_DENSE_INIT, dtype=self.dtype,
+                   name="fc")(x.reshape(x.shape[0], -1))
     return jnp.tanh(nn.LayerNorm(name="norm")(x.astype(jnp.float32)))
 
 
@@ -261,6 +276,128 @@ def block_channel_multiple(dtype, platform: str | None = None) -> int:
   """
   platform = platform or jax.default_backend()
   return 32 if platform == "gpu" and jnp.dtype(dtype).itemsize == 2 else 8
+
+
+def stride_one_on_blocks(platform: str | None = None) -> bool:
+  """Whether `Encoder` computes its stride-1 layers on 2×2 blocks (`BlockConv`).
+
+  Args:
+    platform: the backend the convolutions run on (default: JAX's default backend).
+
+  Returns:
+    True on GPUs, where cuDNN runs the blocks' 4× channels faster than the pixels'
+    (32 in the paper's encoder, in bfloat16 and in float32) although they take 16/9
+    of the multiply-adds (benchmarks/results/training_h200.md, twenty-second
+    section); False elsewhere (on CPUs the extra multiply-adds cost more than
+    they save).
+  """
+  return (platform or jax.default_backend()) == "gpu"
+
+
+def stride_one_block_kernel(kernel: jax.Array) -> jax.Array:
+  """The 2×2 kernel on 2×2 blocks equal to a 3×3 stride-1 kernel on pixels.
+
+  Output pixel (2i + a, 2j + b) of a VALID convolution reads input pixels
+  (2i + a + u, 2j + b + v), u, v < 3, all inside blocks i…i + 1 and j…j + 1: input
+  pixel (2p + q, 2r + s) of that window (block offset p, r; pixel q, s in the block)
+  meets tap (2p + q − a, 2r + s − b), zero where that is outside 0…2.
+
+  Args:
+    kernel: (3, 3, C_in, C_out), HWIO.
+
+  Returns:
+    (2, 2, 4·C_in, 4·C_out): tap (p, r), input channel (2q + s)·C_in + c, output
+    channel (2a + b)·C_out + d, the channel order of `space_to_depth`.
+  """
+  if kernel.shape[:2] != (3, 3):
+    raise ValueError(f"expected a (3, 3, C_in, C_out) kernel, got shape {kernel.shape}")
+  c_in, c_out = kernel.shape[2:]
+  padded = jnp.pad(kernel, ((0, 1), (0, 1), (0, 0), (0, 0)))  # tap 3 reads zeros
+  p, q, a = np.meshgrid(np.arange(2), np.arange(2), np.arange(2), indexing="ij")
+  tap = 2 * p + q - a
+  tap = np.where((tap >= 0) & (tap <= 2), tap, 3)  # per axis: (block, pixel in, pixel out)
+  k = padded[tap[:, None, :, None, :, None], tap[None, :, None, :, None, :]]
+  k = k.transpose(0, 1, 2, 3, 6, 4, 5, 7)  # (p, r, q, s, C_in, a, b, C_out)
+  return k.reshape(2, 2, 4 * c_in, 4 * c_out)
+
+
+class BlockConv(nn.Module):
+  """A 3×3 stride-1 VALID convolution of images held as 2×2 blocks, to 2×2 blocks.
+
+  Takes `space_to_depth` of (B, H, W, C_in) with H, W even, (B, H/2, W/2, 4·C_in),
+  and gives `space_to_depth` of ``nn.Conv(features, (3, 3), padding="VALID")`` of
+  it, (B, H/2 − 1, W/2 − 1, 4·features): the convolution's H − 2 by W − 2 pixels,
+  then one more row and column computed from the input's last row and column (they
+  read past it into the next block, so they are not outputs of the image; a chain
+  of these layers carries them along its bottom and right edges). The parameters
+  are nn.Conv's (names, shapes, initialisers); the kernel is applied as
+  `stride_one_block_kernel`: a 2×2 convolution on 4× the channels, 16/9 of the
+  multiply-adds.
+
+  Attributes:
+    features: output channels (per pixel).
+    dtype: compute dtype (None: promoted from the input and the parameters);
+      the parameters are float32.
+    kernel_init: initialiser of the (3, 3, C_in, features) kernel.
+    bias_init: initialiser of the bias.
+  """
+  features: int
+  dtype: str | None = None
+  kernel_init: nn.initializers.Initializer = nn.initializers.lecun_normal()
+  bias_init: nn.initializers.Initializer = nn.initializers.zeros_init()
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:
+    """Maps (B, h, w, 4·C_in) blocks to (B, h − 1, w − 1, 4·features) blocks."""
+    if x.shape[-1] % 4:
+      raise ValueError(f"expected 2×2 blocks (4·C_in channels), got shape {x.shape}")
+    kernel = self.param("kernel", self.kernel_init, (3, 3, x.shape[-1] // 4, self.features),
+                        jnp.float32)
+    bias = self.param("bias", self.bias_init, (self.features,), jnp.float32)
+    x, kernel, bias = nn.dtypes.promote_dtype(x, kernel, bias, dtype=self.dtype)
+    y = jax.lax.conv_general_dilated(x, stride_one_block_kernel(kernel), (1, 1), "VALID",
+                                     dimension_numbers=("NHWC", "HWIO", "NHWC"))
+    return y + jnp.tile(bias, 4)
+
+
+class BlockDense(nn.Module):
+  """``nn.Dense`` of flattened (B, H, W, C) images, read from their 2×2 blocks.
+
+  Takes (B, h, w, 4·C) blocks of which the first H × W pixels are the image (the
+  rest, e.g. `BlockConv`'s extra row and column, meet zero kernel rows) and gives
+  ``nn.Dense(features)`` of the image flattened in (H, W, C) order, with nn.Dense's
+  parameters (names, shapes, initialisers): the kernel's rows are laid out as the
+  blocks are instead of the blocks being cut back into pixels.
+
+  Attributes:
+    features: output size.
+    image_shape: (H, W), with H ≤ 2h and W ≤ 2w.
+    dtype: compute dtype (None: promoted from the input and the parameters);
+      the parameters are float32.
+    kernel_init: initialiser of the (H·W·C, features) kernel.
+    bias_init: initialiser of the bias.
+  """
+  features: int
+  image_shape: tuple[int, int]
+  dtype: str | None = None
+  kernel_init: nn.initializers.Initializer = nn.initializers.lecun_normal()
+  bias_init: nn.initializers.Initializer = nn.initializers.zeros_init()
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:
+    """Maps (B, h, w, 4·C) blocks to (B, features)."""
+    (height, width), (b, h, w, c4) = self.image_shape, x.shape
+    if c4 % 4 or height > 2 * h or width > 2 * w:
+      raise ValueError(f"blocks of shape {x.shape} do not hold a {height}×{width} image")
+    c = c4 // 4
+    kernel = self.param("kernel", self.kernel_init, (height * width * c, self.features),
+                        jnp.float32)
+    bias = self.param("bias", self.bias_init, (self.features,), jnp.float32)
+    x, kernel, bias = nn.dtypes.promote_dtype(x, kernel, bias, dtype=self.dtype)
+    rows = jnp.pad(kernel.reshape(height, width, c, self.features),
+                   ((0, 2 * h - height), (0, 2 * w - width), (0, 0), (0, 0)))
+    rows = rows.reshape(h, 2, w, 2, c, self.features).transpose(0, 2, 1, 3, 4, 5)
+    return x.reshape(b, -1) @ rows.reshape(-1, self.features) + bias
 
 
 def _conv3x3_params(module: nn.Module, x: jax.Array):
