@@ -7,6 +7,11 @@ of the envs and runs `physics_env.init` and `physics_env.step` on it with its
 own XLA:CPU; the slices step at the same time (measurements:
 `benchmarks/results/physics_processes_h200host.md`).
 
+Each worker compiles its `init` and `step` in a background thread as soon as it
+has started, for its slice's size and the seed argument's kind the env starts
+with, so that the compilation overlaps whatever the training process does before
+its first physics call instead of following it.
+
 State lives in shared memory, one record per env (every leaf of the env's
 `physics_env.EnvState`, its key as key data, the step's reward and truncation),
 double-buffered: a call reads each env's previous record and writes the new one,
@@ -23,6 +28,8 @@ can differ and, in chaotic stretches of an episode, grow
 
 from __future__ import annotations
 
+import threading
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -30,7 +37,7 @@ import numpy as np
 from dmcr_jax import physics_env
 from dmcr_jax.checks import positive_int
 from dmcr_jax.visuals.levels import SeedBounds
-from dmcr_jax.visuals.pool import ArraySpec, OwnsWorkerPool, WorkerPool
+from dmcr_jax.visuals.pool import ArraySpec, OwnsWorkerPool, WorkerPool, slice_bounds
 
 
 def _is_key(leaf) -> bool:
@@ -74,21 +81,69 @@ def _pack(es, records: np.ndarray, key_leaf: int) -> None:
     records[f"l{i}"] = np.asarray(jax.random.key_data(x) if i == key_leaf else x)
 
 
+def _seed_inputs(seeds, n: int) -> dict[str, np.ndarray]:
+  """The workers' per-env seed inputs ("ranged", "seed", "start", "stop") of a seed
+  argument for n envs (`physics_env.seed_argument`: fixed seeds or `SeedBounds`)."""
+  ranged = isinstance(seeds, SeedBounds)
+  each = lambda x: np.broadcast_to(np.asarray(x, np.int32), (n,))
+  unused = each(0)
+  return {"ranged": np.full(n, ranged),
+          "seed": unused if ranged else each(seeds),
+          "start": each(seeds.start) if ranged else unused,
+          "stop": each(seeds.stop) if ranged else unused}
+
+
 class _Stepper:
   """A physics worker's callable (`WorkerPool` protocol): `init` or one `step`
-  of its slice of envs, from `prev`'s records into `out`'s."""
+  of its slice of envs, from `prev`'s records into `out`'s.
 
-  def __init__(self, task_name: str, solver_iterations, ls_iterations, frame_skip: int):
+  Args:
+    task_name, solver_iterations, ls_iterations: the task as `models.load` takes it.
+    frame_skip: control steps per agent step.
+    warm_rows: slice sizes to compile `init` and `step` for in the background
+      (calls wait for it); () compiles on the first call.
+    warm_ranged: the seed argument's kind to compile them for (`SeedBounds` or
+      fixed seeds).
+  """
+
+  def __init__(self, task_name: str, solver_iterations, ls_iterations, frame_skip: int,
+               warm_rows: tuple[int, ...] = (), warm_ranged: bool = False):
     from dmcr_jax import models
     from dmcr_jax.models.base import physics_jit
     task = models.load(task_name, solver_iterations, ls_iterations)
-    self.treedef, _, self.key_leaf = _layout(task)
+    self.treedef, self.record, self.key_leaf = _layout(task)
+    self.action_size = task.action_size
     # The seed argument's kind (fixed seeds or `SeedBounds`) is its pytree type:
     # each kind traces once, any values after that.
     self._init = physics_jit(lambda keys, arg: physics_env.init(task, arg, keys, keys.shape[0]))
     self._step = physics_jit(lambda es, a, arg: physics_env.step(task, arg, frame_skip, es, a))
+    self._warming = threading.Thread(target=self._warm, args=(warm_rows, warm_ranged),
+                                     name="physics-compile", daemon=True)
+    self._warming.start()
+
+  def _warm(self, rows: tuple[int, ...], ranged: bool) -> None:
+    """Compiles `init` and `step` for slices of each size in `rows`: one call of
+    each on inputs built as `__call__` builds them (same types, so the calls that
+    follow find them compiled); results are discarded."""
+    try:
+      for n in rows:
+        records = np.zeros(n, self.record)
+        prev = np.zeros(n, self.record)
+        seeds = np.zeros(n, np.int32)
+        inputs = {"key": np.asarray(jax.random.key_data(jax.random.split(jax.random.key(0), n))),
+                  "action": np.zeros((n, self.action_size), np.float32),
+                  **_seed_inputs(SeedBounds(start=seeds, stop=seeds + 1) if ranged else seeds, n)}
+        self._run(dict(inputs, init=np.ones(n, bool)), prev, records)
+        self._run(dict(inputs, init=np.zeros(n, bool)), records, prev)
+    except Exception:  # noqa: BLE001 - the call that needs it compiles again and raises
+      pass
 
   def __call__(self, inputs, out, prev) -> None:
+    self._warming.join()
+    self._run(inputs, out, prev)
+
+  def _run(self, inputs, out, prev) -> None:
+    """`init` or `step` of the slice in `inputs` (module doc)."""
     c = np.ascontiguousarray
     arg = (SeedBounds(start=c(inputs["start"]), stop=c(inputs["stop"])) if inputs["ranged"][0]
            else c(inputs["seed"]))
@@ -113,6 +168,9 @@ class PhysicsPool(OwnsWorkerPool):
     frame_skip: control steps per agent step.
     workers: W ≥ 1 (at most N are used).
     timeout: seconds a worker may take for one call before it is replaced.
+    ranged: the seed argument's kind the workers compile for as they start
+      (`SeedBounds` if True, else fixed seeds); the other kind compiles when
+      first used.
 
   `init(key, seeds)` and `step(es, actions, seeds)` take and return what the
   jitted `physics_env` functions do, with NumPy leaves (the key on the CPU);
@@ -125,7 +183,7 @@ class PhysicsPool(OwnsWorkerPool):
   """
 
   def __init__(self, task, num_envs: int, frame_skip: int, workers: int,
-               timeout: float = 120.0):
+               timeout: float = 120.0, ranged: bool = False):
     n = positive_int("num_envs", num_envs)
     workers = min(positive_int("physics workers", workers), n)
     self.num_envs = n
@@ -140,19 +198,15 @@ class PhysicsPool(OwnsWorkerPool):
         _Stepper, (task.name, task.solver_iterations, task.ls_iterations, frame_skip),
         inputs, ArraySpec((), record), max_batch=n, workers=workers, timeout=timeout,
         buffers=2, kind="physics",
+        worker_args=[((b - a,), bool(ranged)) for a, b in slice_bounds(n, workers)],
         env={"JAX_PLATFORMS": "cpu", "XLA_PYTHON_CLIENT_PREALLOCATE": "false"})
     self.num_workers = self._pool.num_workers
     self._current = None
 
   def _seeds_in(self, seeds) -> None:
     """Writes a call's seed argument into the workers' inputs."""
-    ranged = isinstance(seeds, SeedBounds)
-    self._pool.inputs["ranged"][:] = ranged
-    if ranged:
-      self._pool.inputs["start"][:] = np.asarray(seeds.start, np.int32)
-      self._pool.inputs["stop"][:] = np.asarray(seeds.stop, np.int32)
-    else:
-      self._pool.inputs["seed"][:] = np.asarray(seeds, np.int32)
+    for name, value in _seed_inputs(seeds, self.num_envs).items():
+      self._pool.inputs[name][:] = value
 
   def _result(self, records: np.ndarray):
     """The EnvState of a call's records, in the caller's own memory (one copy of
