@@ -10,7 +10,10 @@ own XLA:CPU; the slices step at the same time (measurements:
 Each worker compiles its `init` and `step` in a background thread as soon as it
 has started, for its slice's size and the seed argument's kind the env starts
 with, so that the compilation overlaps whatever the training process does before
-its first physics call instead of following it.
+its first physics call instead of following it. The workers share a persistent
+compilation cache (JAX's, `JAX_COMPILATION_CACHE_DIR` if set, else a folder of
+the pool's own): worker 0 compiles first and the others then load what it
+compiled, instead of W processes compiling the same programs at once.
 
 State lives in shared memory, one record per env (every leaf of the env's
 `physics_env.EnvState`, its key as key data, the step's reward and truncation),
@@ -28,6 +31,10 @@ can differ and, in chaotic stretches of an episode, grow
 
 from __future__ import annotations
 
+import multiprocessing as mp
+import os
+import shutil
+import tempfile
 import threading
 
 import jax
@@ -93,6 +100,17 @@ def _seed_inputs(seeds, n: int) -> dict[str, np.ndarray]:
           "stop": each(seeds.stop) if ranged else unused}
 
 
+def _user_cache_dir() -> str | None:
+  """JAX's persistent compilation cache folder, if the user set one (environment
+  or `jax.config`)."""
+  return os.environ.get("JAX_COMPILATION_CACHE_DIR") or jax.config.jax_compilation_cache_dir
+
+
+_FIRST_COMPILE_TIMEOUT = 300.0
+"""Seconds the other physics workers wait for the first one's compilation before
+compiling themselves."""
+
+
 class _Stepper:
   """A physics worker's callable (`WorkerPool` protocol): `init` or one `step`
   of its slice of envs, from `prev`'s records into `out`'s.
@@ -104,10 +122,14 @@ class _Stepper:
       (calls wait for it); () compiles on the first call.
     warm_ranged: the seed argument's kind to compile them for (`SeedBounds` or
       fixed seeds).
+    compiled: None, or an event the first worker sets once it has compiled
+      (`first`), and the others wait for before they compile (from the cache).
+    first: whether this worker compiles first.
   """
 
   def __init__(self, task_name: str, solver_iterations, ls_iterations, frame_skip: int,
-               warm_rows: tuple[int, ...] = (), warm_ranged: bool = False):
+               warm_rows: tuple[int, ...] = (), warm_ranged: bool = False,
+               compiled=None, first: bool = True):
     from dmcr_jax import models
     from dmcr_jax.models.base import physics_jit
     task = models.load(task_name, solver_iterations, ls_iterations)
@@ -117,14 +139,18 @@ class _Stepper:
     # each kind traces once, any values after that.
     self._init = physics_jit(lambda keys, arg: physics_env.init(task, arg, keys, keys.shape[0]))
     self._step = physics_jit(lambda es, a, arg: physics_env.step(task, arg, frame_skip, es, a))
-    self._warming = threading.Thread(target=self._warm, args=(warm_rows, warm_ranged),
+    self._warming = threading.Thread(target=self._warm,
+                                     args=(warm_rows, warm_ranged, compiled, first),
                                      name="physics-compile", daemon=True)
     self._warming.start()
 
-  def _warm(self, rows: tuple[int, ...], ranged: bool) -> None:
+  def _warm(self, rows: tuple[int, ...], ranged: bool, compiled, first: bool) -> None:
     """Compiles `init` and `step` for slices of each size in `rows`: one call of
     each on inputs built as `__call__` builds them (same types, so the calls that
-    follow find them compiled); results are discarded."""
+    follow find them compiled); results are discarded. With `compiled`, the first
+    worker sets it when done and the others wait for it."""
+    if compiled is not None and not first:
+      compiled.wait(_FIRST_COMPILE_TIMEOUT)
     try:
       for n in rows:
         records = np.zeros(n, self.record)
@@ -137,6 +163,9 @@ class _Stepper:
         self._run(dict(inputs, init=np.zeros(n, bool)), records, prev)
     except Exception:  # noqa: BLE001 - the call that needs it compiles again and raises
       pass
+    finally:
+      if compiled is not None and first:
+        compiled.set()
 
   def __call__(self, inputs, out, prev) -> None:
     self._warming.join()
@@ -189,19 +218,35 @@ class PhysicsPool(OwnsWorkerPool):
     self.num_envs = n
     self.treedef, record, self.key_leaf = _layout(task)
     key_shape = record[f"l{self.key_leaf}"].shape
+    cache = _user_cache_dir()
+    self._own_cache = None if cache else tempfile.mkdtemp(prefix="dmcr-physics-xla-")
+    cache = cache or self._own_cache
+    compiled = mp.get_context("spawn").Event()
     inputs = {"action": ArraySpec((task.action_size,), "float32"),
               "key": ArraySpec(key_shape, "uint32"),
               "seed": ArraySpec((), "int32"), "start": ArraySpec((), "int32"),
               "stop": ArraySpec((), "int32"), "ranged": ArraySpec((), "bool"),
               "init": ArraySpec((), "bool")}
-    self._pool = WorkerPool(
-        _Stepper, (task.name, task.solver_iterations, task.ls_iterations, frame_skip),
-        inputs, ArraySpec((), record), max_batch=n, workers=workers, timeout=timeout,
-        buffers=2, kind="physics",
-        worker_args=[((b - a,), bool(ranged)) for a, b in slice_bounds(n, workers)],
-        env={"JAX_PLATFORMS": "cpu", "XLA_PYTHON_CLIENT_PREALLOCATE": "false"})
+    try:
+      self._pool = WorkerPool(
+          _Stepper, (task.name, task.solver_iterations, task.ls_iterations, frame_skip),
+          inputs, ArraySpec((), record), max_batch=n, workers=workers, timeout=timeout,
+          buffers=2, kind="physics",
+          worker_args=[((b - a,), bool(ranged), compiled, w == 0)
+                       for w, (a, b) in enumerate(slice_bounds(n, workers))],
+          env={"JAX_PLATFORMS": "cpu", "XLA_PYTHON_CLIENT_PREALLOCATE": "false",
+               "JAX_COMPILATION_CACHE_DIR": cache})
+    except BaseException:
+      self._remove_own_cache()
+      raise
     self.num_workers = self._pool.num_workers
     self._current = None
+
+  def _remove_own_cache(self) -> None:
+    """Removes the compilation cache folder the pool made, if any (idempotent)."""
+    if getattr(self, "_own_cache", None):
+      shutil.rmtree(self._own_cache, ignore_errors=True)
+      self._own_cache = None
 
   def _seeds_in(self, seeds) -> None:
     """Writes a call's seed argument into the workers' inputs."""
@@ -235,9 +280,11 @@ class PhysicsPool(OwnsWorkerPool):
     return PendingStep(self)
 
   def close(self) -> None:
-    """Stops the workers and frees shared memory (idempotent)."""
+    """Stops the workers, frees shared memory and removes the pool's own
+    compilation cache (idempotent)."""
     super().close()
     self._current = None
+    self._remove_own_cache()
 
 
 class PendingStep:

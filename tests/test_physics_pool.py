@@ -3,6 +3,7 @@ episode ends, seed kinds, slices, a killed worker and an external state."""
 
 import os
 import signal
+import threading
 
 import jax
 import numpy as np
@@ -150,6 +151,31 @@ def test_a_worker_compiles_its_slice_as_it_starts_and_its_calls_reuse_it():
                            jax.device_put(seeds, cpu))
   np.testing.assert_allclose(records[1]["reward"], reward, rtol=1e-4, atol=1e-5)
   assert_close(physics_pool._unpack(records[1], stepper.treedef, stepper.key_leaf, True), es_ref)
+
+
+@pytest.mark.slow
+def test_workers_compile_after_the_first_one_from_a_cache_the_pool_removes(monkeypatch):
+  # Worker 0 compiles first and sets the event; the others wait for it before they
+  # compile (then from the shared cache): a follower compiles nothing until then.
+  task = models.load(TASK)
+  args = (TASK, task.solver_iterations, task.ls_iterations, SKIP, (N,), False)
+  compiled = threading.Event()
+  follower = _Stepper(*args, compiled, False)
+  follower._warming.join(timeout=2.0)
+  assert follower._warming.is_alive() and follower._step._cache_size() == 0
+  first = _Stepper(*args, compiled, True)
+  first._warming.join()
+  assert compiled.is_set() and first._step._cache_size() == 1
+  follower._warming.join()
+  assert follower._step._cache_size() == 1
+  # The pool's own cache (when the user set none) holds what the workers compiled
+  # while the pool is open, and goes with it.
+  monkeypatch.setattr(physics_pool, "_user_cache_dir", lambda: None)
+  with PhysicsPool(task, 2 * N, SKIP, workers=2) as pool:
+    cache = pool._own_cache
+    pool.init(jax.random.key(0), np.zeros(2 * N, np.int32))
+    assert os.listdir(cache)
+  assert not os.path.exists(cache)
 
 
 @pytest.mark.slow
