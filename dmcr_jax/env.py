@@ -90,7 +90,7 @@ from dmcr_jax.checks import positive_int
 from dmcr_jax.models.base import physics_jit
 from dmcr_jax.visuals import render_model as rmod
 from dmcr_jax.visuals.factors import check_vary
-from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, EnvRanges, SeedRange
+from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, EnvRanges, SeedBounds, SeedRange
 from dmcr_jax.visuals.params import check_seeds
 from dmcr_jax.visuals.render_pool import (RenderPool, check_egl_devices, check_gl, default_gl,
                                           default_workers)
@@ -283,7 +283,8 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     if self.physics_workers:
       if self._physics_pool is None:
         self._physics_pool = PhysicsPool(self.task, self.num_envs, self.frame_skip,
-                                         self.physics_workers)
+                                         self.physics_workers,
+                                         ranged=isinstance(seed_arg, SeedBounds))
       self._init, self._step = self._physics_pool.init, self._physics_pool.step
       self._seed_arg = seed_arg
       return

@@ -7,6 +7,14 @@ of the envs and runs `physics_env.init` and `physics_env.step` on it with its
 own XLA:CPU; the slices step at the same time (measurements:
 `benchmarks/results/physics_processes_h200host.md`).
 
+Each worker compiles its `init` and `step` in a background thread as soon as it
+has started, for its slice's size and the seed argument's kind the env starts
+with, so that the compilation overlaps whatever the training process does before
+its first physics call instead of following it. The workers share a persistent
+compilation cache (JAX's, `JAX_COMPILATION_CACHE_DIR` if set, else a folder of
+the pool's own): worker 0 compiles first and the others then load what it
+compiled, instead of W processes compiling the same programs at once.
+
 State lives in shared memory, one record per env (every leaf of the env's
 `physics_env.EnvState`, its key as key data, the step's reward and truncation),
 double-buffered: a call reads each env's previous record and writes the new one,
@@ -23,6 +31,12 @@ can differ and, in chaotic stretches of an episode, grow
 
 from __future__ import annotations
 
+import multiprocessing as mp
+import os
+import shutil
+import tempfile
+import threading
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -30,7 +44,7 @@ import numpy as np
 from dmcr_jax import physics_env
 from dmcr_jax.checks import positive_int
 from dmcr_jax.visuals.levels import SeedBounds
-from dmcr_jax.visuals.pool import ArraySpec, OwnsWorkerPool, WorkerPool
+from dmcr_jax.visuals.pool import ArraySpec, OwnsWorkerPool, WorkerPool, slice_bounds
 
 
 def _is_key(leaf) -> bool:
@@ -74,21 +88,91 @@ def _pack(es, records: np.ndarray, key_leaf: int) -> None:
     records[f"l{i}"] = np.asarray(jax.random.key_data(x) if i == key_leaf else x)
 
 
+def _seed_inputs(seeds, n: int) -> dict[str, np.ndarray]:
+  """The workers' per-env seed inputs ("ranged", "seed", "start", "stop") of a seed
+  argument for n envs (`physics_env.seed_argument`: fixed seeds or `SeedBounds`)."""
+  ranged = isinstance(seeds, SeedBounds)
+  each = lambda x: np.broadcast_to(np.asarray(x, np.int32), (n,))
+  unused = each(0)
+  return {"ranged": np.full(n, ranged),
+          "seed": unused if ranged else each(seeds),
+          "start": each(seeds.start) if ranged else unused,
+          "stop": each(seeds.stop) if ranged else unused}
+
+
+def _user_cache_dir() -> str | None:
+  """JAX's persistent compilation cache folder, if the user set one (environment
+  or `jax.config`)."""
+  return os.environ.get("JAX_COMPILATION_CACHE_DIR") or jax.config.jax_compilation_cache_dir
+
+
+_FIRST_COMPILE_TIMEOUT = 300.0
+"""Seconds the other physics workers wait for the first one's compilation before
+compiling themselves."""
+
+
 class _Stepper:
   """A physics worker's callable (`WorkerPool` protocol): `init` or one `step`
-  of its slice of envs, from `prev`'s records into `out`'s."""
+  of its slice of envs, from `prev`'s records into `out`'s.
 
-  def __init__(self, task_name: str, solver_iterations, ls_iterations, frame_skip: int):
+  Args:
+    task_name, solver_iterations, ls_iterations: the task as `models.load` takes it.
+    frame_skip: control steps per agent step.
+    warm_rows: slice sizes to compile `init` and `step` for in the background
+      (calls wait for it); () compiles on the first call.
+    warm_ranged: the seed argument's kind to compile them for (`SeedBounds` or
+      fixed seeds).
+    compiled: None, or an event the first worker sets once it has compiled
+      (`first`), and the others wait for before they compile (from the cache).
+    first: whether this worker compiles first.
+  """
+
+  def __init__(self, task_name: str, solver_iterations, ls_iterations, frame_skip: int,
+               warm_rows: tuple[int, ...] = (), warm_ranged: bool = False,
+               compiled=None, first: bool = True):
     from dmcr_jax import models
     from dmcr_jax.models.base import physics_jit
     task = models.load(task_name, solver_iterations, ls_iterations)
-    self.treedef, _, self.key_leaf = _layout(task)
+    self.treedef, self.record, self.key_leaf = _layout(task)
+    self.action_size = task.action_size
     # The seed argument's kind (fixed seeds or `SeedBounds`) is its pytree type:
     # each kind traces once, any values after that.
     self._init = physics_jit(lambda keys, arg: physics_env.init(task, arg, keys, keys.shape[0]))
     self._step = physics_jit(lambda es, a, arg: physics_env.step(task, arg, frame_skip, es, a))
+    self._warming = threading.Thread(target=self._warm,
+                                     args=(warm_rows, warm_ranged, compiled, first),
+                                     name="physics-compile", daemon=True)
+    self._warming.start()
+
+  def _warm(self, rows: tuple[int, ...], ranged: bool, compiled, first: bool) -> None:
+    """Compiles `init` and `step` for slices of each size in `rows`: one call of
+    each on inputs built as `__call__` builds them (same types, so the calls that
+    follow find them compiled); results are discarded. With `compiled`, the first
+    worker sets it when done and the others wait for it."""
+    if compiled is not None and not first:
+      compiled.wait(_FIRST_COMPILE_TIMEOUT)
+    try:
+      for n in rows:
+        records = np.zeros(n, self.record)
+        prev = np.zeros(n, self.record)
+        seeds = np.zeros(n, np.int32)
+        inputs = {"key": np.asarray(jax.random.key_data(jax.random.split(jax.random.key(0), n))),
+                  "action": np.zeros((n, self.action_size), np.float32),
+                  **_seed_inputs(SeedBounds(start=seeds, stop=seeds + 1) if ranged else seeds, n)}
+        self._run(dict(inputs, init=np.ones(n, bool)), prev, records)
+        self._run(dict(inputs, init=np.zeros(n, bool)), records, prev)
+    except Exception:  # noqa: BLE001 - the call that needs it compiles again and raises
+      pass
+    finally:
+      if compiled is not None and first:
+        compiled.set()
 
   def __call__(self, inputs, out, prev) -> None:
+    self._warming.join()
+    self._run(inputs, out, prev)
+
+  def _run(self, inputs, out, prev) -> None:
+    """`init` or `step` of the slice in `inputs` (module doc)."""
     c = np.ascontiguousarray
     arg = (SeedBounds(start=c(inputs["start"]), stop=c(inputs["stop"])) if inputs["ranged"][0]
            else c(inputs["seed"]))
@@ -113,6 +197,9 @@ class PhysicsPool(OwnsWorkerPool):
     frame_skip: control steps per agent step.
     workers: W ≥ 1 (at most N are used).
     timeout: seconds a worker may take for one call before it is replaced.
+    ranged: the seed argument's kind the workers compile for as they start
+      (`SeedBounds` if True, else fixed seeds); the other kind compiles when
+      first used.
 
   `init(key, seeds)` and `step(es, actions, seeds)` take and return what the
   jitted `physics_env` functions do, with NumPy leaves (the key on the CPU);
@@ -125,34 +212,46 @@ class PhysicsPool(OwnsWorkerPool):
   """
 
   def __init__(self, task, num_envs: int, frame_skip: int, workers: int,
-               timeout: float = 120.0):
+               timeout: float = 120.0, ranged: bool = False):
     n = positive_int("num_envs", num_envs)
     workers = min(positive_int("physics workers", workers), n)
     self.num_envs = n
     self.treedef, record, self.key_leaf = _layout(task)
     key_shape = record[f"l{self.key_leaf}"].shape
+    cache = _user_cache_dir()
+    self._own_cache = None if cache else tempfile.mkdtemp(prefix="dmcr-physics-xla-")
+    cache = cache or self._own_cache
+    compiled = mp.get_context("spawn").Event()
     inputs = {"action": ArraySpec((task.action_size,), "float32"),
               "key": ArraySpec(key_shape, "uint32"),
               "seed": ArraySpec((), "int32"), "start": ArraySpec((), "int32"),
               "stop": ArraySpec((), "int32"), "ranged": ArraySpec((), "bool"),
               "init": ArraySpec((), "bool")}
-    self._pool = WorkerPool(
-        _Stepper, (task.name, task.solver_iterations, task.ls_iterations, frame_skip),
-        inputs, ArraySpec((), record), max_batch=n, workers=workers, timeout=timeout,
-        buffers=2, kind="physics",
-        env={"JAX_PLATFORMS": "cpu", "XLA_PYTHON_CLIENT_PREALLOCATE": "false"})
+    try:
+      self._pool = WorkerPool(
+          _Stepper, (task.name, task.solver_iterations, task.ls_iterations, frame_skip),
+          inputs, ArraySpec((), record), max_batch=n, workers=workers, timeout=timeout,
+          buffers=2, kind="physics",
+          worker_args=[((b - a,), bool(ranged), compiled, w == 0)
+                       for w, (a, b) in enumerate(slice_bounds(n, workers))],
+          env={"JAX_PLATFORMS": "cpu", "XLA_PYTHON_CLIENT_PREALLOCATE": "false",
+               "JAX_COMPILATION_CACHE_DIR": cache})
+    except BaseException:
+      self._remove_own_cache()
+      raise
     self.num_workers = self._pool.num_workers
     self._current = None
 
+  def _remove_own_cache(self) -> None:
+    """Removes the compilation cache folder the pool made, if any (idempotent)."""
+    if getattr(self, "_own_cache", None):
+      shutil.rmtree(self._own_cache, ignore_errors=True)
+      self._own_cache = None
+
   def _seeds_in(self, seeds) -> None:
     """Writes a call's seed argument into the workers' inputs."""
-    ranged = isinstance(seeds, SeedBounds)
-    self._pool.inputs["ranged"][:] = ranged
-    if ranged:
-      self._pool.inputs["start"][:] = np.asarray(seeds.start, np.int32)
-      self._pool.inputs["stop"][:] = np.asarray(seeds.stop, np.int32)
-    else:
-      self._pool.inputs["seed"][:] = np.asarray(seeds, np.int32)
+    for name, value in _seed_inputs(seeds, self.num_envs).items():
+      self._pool.inputs[name][:] = value
 
   def _result(self, records: np.ndarray):
     """The EnvState of a call's records, in the caller's own memory (one copy of
@@ -181,9 +280,11 @@ class PhysicsPool(OwnsWorkerPool):
     return PendingStep(self)
 
   def close(self) -> None:
-    """Stops the workers and frees shared memory (idempotent)."""
+    """Stops the workers, frees shared memory and removes the pool's own
+    compilation cache (idempotent)."""
     super().close()
     self._current = None
+    self._remove_own_cache()
 
 
 class PendingStep:

@@ -46,6 +46,16 @@ class ImportEnvRenderer:
     out[:] = float(IMPORT_ENV == "set")
 
 
+class ArgValueRenderer:
+  """Writes the value it was built with (per-worker factory arguments)."""
+
+  def __init__(self, value: float):
+    self.value = value
+
+  def __call__(self, inputs, out):
+    out[:] = self.value
+
+
 class EnvValueRenderer:
   """Writes float(DMCR_POOL_TEST_VAR) as the worker sees it (per-worker environments)."""
 

@@ -3,6 +3,7 @@ episode ends, seed kinds, slices, a killed worker and an external state."""
 
 import os
 import signal
+import threading
 
 import jax
 import numpy as np
@@ -10,8 +11,8 @@ import pytest
 
 import dmcr_jax
 from dmcr_jax import env as env_mod
-from dmcr_jax import models, physics_env
-from dmcr_jax.physics_pool import PhysicsPool
+from dmcr_jax import models, physics_env, physics_pool
+from dmcr_jax.physics_pool import PhysicsPool, _Stepper
 from dmcr_jax.visuals.levels import EnvRanges, SeedRange
 
 # test_env's task and sizes (pendulum-swingup, frame skip 100: 10 agent steps per
@@ -122,6 +123,59 @@ def test_per_env_ranges_draw_as_in_process_in_every_slice(pool):
   es_ref, es = run_both(pool, other, EPISODE + 1, es_ref, es)
   assert_close(es, es_ref)
   assert other.contains_all(es.visual_seed)
+
+
+@pytest.mark.slow
+def test_a_worker_compiles_its_slice_as_it_starts_and_its_calls_reuse_it():
+  # A worker compiles init and step in the background when it is built; the calls
+  # then run the programs compiled there (no second compilation) and give the
+  # in-process physics.
+  task = models.load(TASK)
+  stepper = _Stepper(TASK, task.solver_iterations, task.ls_iterations, SKIP, (N,), False)
+  stepper._warming.join()
+  assert (stepper._init._cache_size(), stepper._step._cache_size()) == (1, 1)
+  seeds = np.array([3, 7, 9], np.int32)
+  key = jax.random.key(5)
+  init, step = in_process()
+  cpu = jax.devices("cpu")[0]
+  es_ref = init(key, jax.device_put(seeds, cpu))
+  inputs = {"key": np.asarray(jax.random.key_data(jax.random.split(key, N))),
+            "action": np.full((N, task.action_size), 0.5, np.float32),
+            "seed": seeds, "start": np.zeros(N, np.int32), "stop": np.zeros(N, np.int32),
+            "ranged": np.zeros(N, bool)}
+  records = [np.zeros(N, stepper.record), np.zeros(N, stepper.record)]
+  stepper(dict(inputs, init=np.ones(N, bool)), records[0], records[1])
+  stepper(dict(inputs, init=np.zeros(N, bool)), records[1], records[0])
+  assert (stepper._init._cache_size(), stepper._step._cache_size()) == (1, 1)
+  es_ref, reward, _ = step(es_ref, jax.device_put(inputs["action"], cpu),
+                           jax.device_put(seeds, cpu))
+  np.testing.assert_allclose(records[1]["reward"], reward, rtol=1e-4, atol=1e-5)
+  assert_close(physics_pool._unpack(records[1], stepper.treedef, stepper.key_leaf, True), es_ref)
+
+
+@pytest.mark.slow
+def test_workers_compile_after_the_first_one_from_a_cache_the_pool_removes(monkeypatch):
+  # Worker 0 compiles first and sets the event; the others wait for it before they
+  # compile (then from the shared cache): a follower compiles nothing until then.
+  task = models.load(TASK)
+  args = (TASK, task.solver_iterations, task.ls_iterations, SKIP, (N,), False)
+  compiled = threading.Event()
+  follower = _Stepper(*args, compiled, False)
+  follower._warming.join(timeout=2.0)
+  assert follower._warming.is_alive() and follower._step._cache_size() == 0
+  first = _Stepper(*args, compiled, True)
+  first._warming.join()
+  assert compiled.is_set() and first._step._cache_size() == 1
+  follower._warming.join()
+  assert follower._step._cache_size() == 1
+  # The pool's own cache (when the user set none) holds what the workers compiled
+  # while the pool is open, and goes with it.
+  monkeypatch.setattr(physics_pool, "_user_cache_dir", lambda: None)
+  with PhysicsPool(task, 2 * N, SKIP, workers=2) as pool:
+    cache = pool._own_cache
+    pool.init(jax.random.key(0), np.zeros(2 * N, np.int32))
+    assert os.listdir(cache)
+  assert not os.path.exists(cache)
 
 
 @pytest.mark.slow

@@ -58,6 +58,25 @@ def test_defaults_follow_the_paper():
   assert cfg.sac.batch_size == 256 and cfg.sac.aug == "drq" and cfg.action_repeat is None
 
 
+def test_physics_steps_in_worker_processes_on_half_the_cores_beside_an_accelerator(
+    monkeypatch):
+  assert loop.default_physics_workers(16, "gpu") == 8
+  assert loop.default_physics_workers(64, "gpu") == loop.PHYSICS_WORKERS_MAX
+  assert loop.default_physics_workers(8, "gpu") == 4
+  assert loop.default_physics_workers(16, "gpu", groups=2) == 4  # shared by the groups
+  assert loop.default_physics_workers(3, "gpu") == 0  # one worker: the training process
+  assert loop.default_physics_workers(16, "cpu") == 0  # the learner needs the cores
+  # A config's count: the default where the physics steps on the host CPU, what
+  # it says otherwise, none where the physics steps on the device.
+  monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+  monkeypatch.setattr(os, "cpu_count", lambda: 16)
+  assert parse([])[0].physics_workers is None
+  assert loop.TrainConfig().physics_pool_workers() == 8  # "auto": 32 envs on the host CPU
+  assert loop.TrainConfig(physics_workers=0).physics_pool_workers() == 0
+  assert loop.TrainConfig(physics_workers=3).physics_pool_workers() == 3
+  assert loop.TrainConfig(physics="device").physics_pool_workers() == 0
+
+
 def demo_run(out, **changes) -> loop.TrainConfig:
   """test_demo's training run (tiny pendulum, 2 envs, the JAX renderer, levels:6) into
   `out`, with `changes`: sized alike, the runs share their compilations."""

@@ -174,6 +174,25 @@ def test_worker_env_adds_per_worker_variables_round_robin():
   finally:
     pool.close()
 
+def test_worker_args_build_each_worker_and_its_replacement():
+  # PhysicsPool's slice sizes: worker w is built by factory(*factory_args,
+  # *worker_args[w]), and a replaced worker is rebuilt with its own.
+  pool = WorkerPool(fx.ArgValueRenderer, (), IN, OUT, max_batch=5, workers=3,
+                    worker_args=[(10.0,), (20.0,), (30.0,)])
+  try:
+    want = np.concatenate([np.full(b - a, 10.0 * (w + 1))
+                           for w, (a, b) in enumerate(pool.slices(5))])
+    fill(pool, 5)
+    np.testing.assert_array_equal(pool.run(5)[:, 0, 0], want)
+    os.kill(pool.pids[2], signal.SIGKILL)
+    fill(pool, 5)
+    np.testing.assert_array_equal(pool.run(5)[:, 0, 0], want)
+  finally:
+    pool.close()
+  with pytest.raises(ValueError, match="one entry per worker"):
+    WorkerPool(fx.ArgValueRenderer, (), IN, OUT, max_batch=5, workers=3, worker_args=[(1.0,)])
+
+
 def test_submit_returns_before_wait_and_wait_completes_the_call(tmp_path):
   with make_pool(tmp_path, workers=2)[0] as pool:
     n = 7

@@ -43,9 +43,9 @@ import json
 import os
 import sys
 
-from dmcr_jax.train.loop import (AGENT_LOOPS, CPU_PHYSICS_MAX_ENVS, PHYSICS, RENDERERS, RESUMABLE,
-                        TrainConfig, check_config, egl_devices_arg, load_config, progress_every,
-                        train)
+from dmcr_jax.train.loop import (AGENT_LOOPS, CPU_PHYSICS_MAX_ENVS, PHYSICS, PHYSICS_WORKERS_MAX,
+                        RENDERERS, RESUMABLE, TrainConfig, check_config, egl_devices_arg,
+                        load_config, progress_every, train)
 from dmcr_jax.train.sac import ALGOS, COMPUTE_DTYPES, SACConfig
 
 
@@ -115,7 +115,8 @@ def build_parser() -> argparse.ArgumentParser:
   p.add_argument("--physics-workers", type=int, default=d.physics_workers,
                  help="with the physics on the host CPU (--physics auto on an "
                       "accelerator, or cpu): processes that step it, each a slice of the "
-                      "envs (0: in the training process)")
+                      "envs (0: in the training process; default: half the cores, at most "
+                      f"{PHYSICS_WORKERS_MAX}, when the learner is on an accelerator, else 0)")
   p.add_argument("--chunk-steps", type=int, default=d.chunk_steps,
                  help="--renderer jax with the physics on the device: vector steps per "
                       "device call")

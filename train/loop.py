@@ -15,9 +15,10 @@ batches (K·N ≤ `CPU_PHYSICS_MAX_ENVS`) on the host CPU when the learner runs 
 an accelerator: a few dozen envs step there faster than an accelerator's launch
 latency allows, and off the accelerator's queue, so the updates and the physics
 run at the same time; larger batches step on the accelerator. On the host CPU the
-physics may step in `TrainConfig.physics_workers` processes (`dmcr_jax.physics_pool`),
+physics steps in `TrainConfig.physics_workers` processes (`dmcr_jax.physics_pool`),
 each a slice of the envs, so that a many-core host steps the batch in parallel
-(default 0: in the training process).
+(default None: `default_physics_workers`, half the host's cores and at most
+`PHYSICS_WORKERS_MAX` beside an accelerator; 0 is the training process itself).
 
 Env groups (`TrainConfig.env_groups` = G, host driver): each agent's N envs are
 G envs of N/G (G `dmcr_jax.make` envs, each with its own render workers), stepped
@@ -102,6 +103,8 @@ PHYSICS = ("auto", "cpu", "device")
 learner's device."""
 CPU_PHYSICS_MAX_ENVS = 64
 """The largest K·N whose physics "auto" steps on the host CPU."""
+PHYSICS_WORKERS_MAX = 8
+"""The most physics worker processes `default_physics_workers` gives a run."""
 RESUMABLE = ("steps", "checkpoint_every", "log_every", "workers", "physics_workers",
              "egl_devices")
 """`TrainConfig` fields a resumed run may change (a larger `steps` extends it; the
@@ -156,8 +159,9 @@ class TrainConfig:
     physics: where the physics steps: "auto", "cpu" or "device" (module doc).
     env_groups: G, the groups each agent's N envs step in with the host driver
       (module doc); G divides N; 1 with the device driver.
-    physics_workers: with the physics on the host CPU, processes that step it
-      (`dmcr_jax.physics_pool`; 0: in the training process).
+    physics_workers: with the physics on the host CPU, processes that step each
+      env group's physics (`dmcr_jax.physics_pool`; 0: the training process; None:
+      `default_physics_workers`).
     out_dir: where the CSV, the PNG and the checkpoints go.
     sac: the learner's hyperparameters.
   """
@@ -184,7 +188,7 @@ class TrainConfig:
   chunk_steps: int = 50
   physics: str = "auto"
   env_groups: int = 1
-  physics_workers: int = 0
+  physics_workers: int | None = None
   sac: sac.SACConfig = sac.SACConfig()
 
   def __post_init__(self):
@@ -202,8 +206,13 @@ class TrainConfig:
 
   def physics_pool_workers(self) -> int:
     """`dmcr_jax.make`'s `physics_workers` for each env group of this run (0 unless
-    the physics steps on the host CPU)."""
-    return self.physics_workers if self.physics_device() == "cpu" else 0
+    the physics steps on the host CPU; `default_physics_workers` when None)."""
+    if self.physics_device() != "cpu":
+      return 0
+    if self.physics_workers is None:
+      return default_physics_workers(os.cpu_count() or 1, jax.default_backend(),
+                                     self.env_groups)
+    return self.physics_workers
 
   def device_driver(self) -> bool:
     """Whether `train` runs this config with the device driver
@@ -233,6 +242,27 @@ VISUAL_SEEDS_FORM = (
     f"'{ALL_LEVELS}', one agent per range of the first n seeds (levels:1 = seed 0 only, "
     "dm_control's look), e.g. levels:1,10,100,1000,10000,all")
 """The valid forms of `TrainConfig.visual_seeds` (named by its errors)."""
+
+
+def default_physics_workers(cores: int, backend: str, groups: int = 1) -> int:
+  """Physics worker processes per env group when `TrainConfig.physics_workers` is
+  None and the physics steps on the host CPU.
+
+  Args:
+    cores: the host's CPU cores.
+    backend: JAX's default backend, where the learner runs ("cpu", "gpu", "tpu").
+    groups: env groups (`TrainConfig.env_groups`), each with its own workers.
+
+  Returns:
+    Half the cores, at most `PHYSICS_WORKERS_MAX`, shared by the groups, when the
+    learner runs on an accelerator (the other half render and launch the updates);
+    0, the physics in the training process, when that leaves fewer than two per
+    group or when the learner itself runs on the CPU's cores.
+  """
+  if backend == "cpu":
+    return 0
+  workers = min(PHYSICS_WORKERS_MAX, int(cores) // 2) // int(groups)
+  return workers if workers >= 2 else 0
 
 
 def parse_visual_seeds(value) -> tuple[int | SeedRange, ...]:

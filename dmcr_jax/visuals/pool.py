@@ -159,6 +159,13 @@ def _worker_main(conn, factory, factory_args, in_names, in_specs, out_names, out
     s.close()
 
 
+def slice_bounds(batch: int, workers: int) -> list[tuple[int, int]]:
+  """[start, stop) of the contiguous slice of `batch` rows that each of `workers`
+  workers owns (`WorkerPool.slices`): sizes differ by at most one."""
+  bounds = np.linspace(0, batch, workers + 1).round().astype(int)
+  return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
 class WorkerPool:
   """W processes rendering fixed slices of a batch into shared memory.
 
@@ -176,6 +183,8 @@ class WorkerPool:
     env: environment variables set in each worker before the factory runs.
     worker_env: per-worker additions to `env`: worker w (and its replacements)
       also gets `worker_env[w % len(worker_env)]`.
+    worker_args: per-worker factory arguments after `factory_args`: worker w
+      (and its replacements) is built by `factory(*factory_args, *worker_args[w])`.
     buffers: 1, or 2 for double-buffered outputs (see the module docstring).
     kind: what the workers do, for process names and error messages ("render",
       "physics").
@@ -186,13 +195,17 @@ class WorkerPool:
                workers: int, timeout: float = 120.0, start_timeout: float = 600.0,
                max_retries: int = 3,
                env: Mapping[str, str] | None = None, buffers: int = 1,
-               kind: str = "render", worker_env: Sequence[Mapping[str, str]] = ()):
+               kind: str = "render", worker_env: Sequence[Mapping[str, str]] = (),
+               worker_args: Sequence[Sequence[Any]] = ()):
     if int(workers) < 1:
       raise ValueError(f"workers must be >= 1, got {workers}")
     if int(max_batch) < 1:
       raise ValueError(f"max_batch must be >= 1, got {max_batch}")
     if buffers not in (1, 2):
       raise ValueError(f"buffers must be 1 or 2, got {buffers}")
+    if worker_args and len(worker_args) != int(workers):
+      raise ValueError(f"worker_args must have one entry per worker ({workers}), got "
+                       f"{len(worker_args)}")
     self._factory, self._factory_args = factory, tuple(factory_args)
     self._in_specs = dict(inputs)
     self._out_spec = output
@@ -203,6 +216,7 @@ class WorkerPool:
     self.max_retries = int(max_retries)
     self._env = dict(env or {})
     self._worker_env = [dict(e) for e in worker_env]
+    self._worker_args = [tuple(a) for a in worker_args]
     self._ctx = mp.get_context("spawn")
     self._segments: list[shared_memory.SharedMemory] = []
     self._procs: list[Any] = [None] * self.num_workers
@@ -240,7 +254,9 @@ class WorkerPool:
       env.update(self._worker_env[w % len(self._worker_env)])
     proc = self._ctx.Process(
         target=_worker_main, daemon=True, name=f"dmcr-{self.kind}-{w}",
-        args=(child, self._factory, self._factory_args, self._in_names, self._in_specs,
+        args=(child, self._factory,
+              self._factory_args + (self._worker_args[w] if self._worker_args else ()),
+              self._in_names, self._in_specs,
               self._out_names, self._out_spec, self.max_batch, env))
     with _main_module_hidden(), _environ(env):
       proc.start()
@@ -329,8 +345,7 @@ class WorkerPool:
 
   def slices(self, batch: int) -> list[tuple[int, int]]:
     """The fixed contiguous slice of a `batch` that each worker owns."""
-    bounds = np.linspace(0, batch, self.num_workers + 1).round().astype(int)
-    return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
+    return slice_bounds(batch, self.num_workers)
 
   def run(self, batch: int) -> np.ndarray:
     """Renders envs [0, batch) from `self.inputs` into `self.output[:batch]`
