@@ -1,15 +1,16 @@
 """Experiment: the encoder's stride-1 3×3 layers on pixels, or on 2×2 pixel blocks.
 
 The encoder's layers 2–4 (ReLU(Conv(32, 3×3, stride 1, VALID) + bias)) map a
-(R, 41, 41, 32) bfloat16 activation to (R, 35, 35, 32). ``pixels``: as the encoder
-computes them (cuDNN on 32 channels). ``blocks``: the same function on 2×2 pixel
-blocks: the input padded to 42 × 42 and cut into 21 × 21 blocks of 128 channels
+(R, 41, 41, 32) bfloat16 activation to (R, 35, 35, 32). ``pixels``: as `nn.Conv`
+computes them (the encoder's way on CPUs; 32 channels). ``blocks``: the same function
+on 2×2 pixel blocks, the encoder's way on GPUs (`networks.BlockConv`): the input
+padded to 42 × 42 and cut into 21 × 21 blocks of 128 channels
 (`networks.space_to_depth`), each layer a 2×2 VALID convolution with a
 (2, 2, 128, 128) kernel assembled from the 3×3 one
 (`networks.stride_one_block_kernel`: most of its taps are zero), the result cut
-back to pixels and cropped to 35 × 35 (as `networks.BlockConv` computes them). More
-multiply-adds (16 × 128² per 4 output pixels against 9 × 32² per pixel), on the
-channel counts tensor cores are made for. Times a forward pass (``fwd``) and the
+back to pixels and cropped to 35 × 35 (the encoder's dense layer reads the blocks
+instead). More multiply-adds (16 × 128² per 4 output pixels against 9 × 32² per
+pixel), on the channel counts tensor cores are made for. Times a forward pass (``fwd``) and the
 gradient of a sum with respect to the parameters and the input (``grad``, as the
 critic's pass needs).
 
