@@ -326,13 +326,13 @@ class BlockConv(nn.Module):
 
   Takes `space_to_depth` of (B, H, W, C_in) with H, W even, (B, H/2, W/2, 4·C_in),
   and gives `space_to_depth` of ``nn.Conv(features, (3, 3), padding="VALID")`` of
-  it, (B, H/2 − 1, W/2 − 1, 4·features): the convolution's H − 2 by W − 2 pixels,
-  then one more row and column computed from the input's last row and column (they
-  read past it into the next block, so they are not outputs of the image; a chain
-  of these layers carries them along its bottom and right edges). The parameters
-  are nn.Conv's (names, shapes, initialisers); the kernel is applied as
-  `stride_one_block_kernel`: a 2×2 convolution on 4× the channels, 16/9 of the
-  multiply-adds.
+  it, (B, H/2 − 1, W/2 − 1, 4·features): the convolution's H − 2 by W − 2 pixels.
+  (An odd side, padded by a zero pixel to be cut into blocks, gives one row or
+  column more than the unpadded image's convolution, read partly from the padding;
+  a chain of these layers carries it along the bottom or right edge, and
+  `BlockDense` ignores it.) The parameters are nn.Conv's (names, shapes,
+  initialisers); the kernel is applied as `stride_one_block_kernel`: a 2×2
+  convolution on 4× the channels, 16/9 of the multiply-adds.
 
   Attributes:
     features: output channels (per pixel).
@@ -351,10 +351,7 @@ class BlockConv(nn.Module):
     """Maps (B, h, w, 4·C_in) blocks to (B, h − 1, w − 1, 4·features) blocks."""
     if x.shape[-1] % 4:
       raise ValueError(f"expected 2×2 blocks (4·C_in channels), got shape {x.shape}")
-    kernel = self.param("kernel", self.kernel_init, (3, 3, x.shape[-1] // 4, self.features),
-                        jnp.float32)
-    bias = self.param("bias", self.bias_init, (self.features,), jnp.float32)
-    x, kernel, bias = nn.dtypes.promote_dtype(x, kernel, bias, dtype=self.dtype)
+    x, kernel, bias = _conv3x3_params(self, x, x.shape[-1] // 4)
     y = jax.lax.conv_general_dilated(x, stride_one_block_kernel(kernel), (1, 1), "VALID",
                                      dimension_numbers=("NHWC", "HWIO", "NHWC"))
     return y + jnp.tile(bias, 4)
@@ -364,7 +361,8 @@ class BlockDense(nn.Module):
   """``nn.Dense`` of flattened (B, H, W, C) images, read from their 2×2 blocks.
 
   Takes (B, h, w, 4·C) blocks of which the first H × W pixels are the image (the
-  rest, e.g. `BlockConv`'s extra row and column, meet zero kernel rows) and gives
+  rest, e.g. the row and column an odd side's padding adds to a chain of
+  `BlockConv`, meet zero kernel rows) and gives
   ``nn.Dense(features)`` of the image flattened in (H, W, C) order, with nn.Dense's
   parameters (names, shapes, initialisers): the kernel's rows are laid out as the
   blocks are instead of the blocks being cut back into pixels.
@@ -400,15 +398,17 @@ class BlockDense(nn.Module):
     return x.reshape(b, -1) @ rows.reshape(-1, self.features) + bias
 
 
-def _conv3x3_params(module: nn.Module, x: jax.Array):
+def _conv3x3_params(module: nn.Module, x: jax.Array, in_channels: int | None = None):
   """A 3×3 layer's float32 parameters, as nn.Conv names and shapes them
   ({"kernel": (3, 3, C_in, features), "bias": (features,)}), and the input and
   both cast to the module's compute dtype (``nn.dtypes.promote_dtype``).
 
   Called inside the `nn.compact` method of a module with `features`, `dtype`,
-  `kernel_init` and `bias_init` (`StrideTwoConv`, `StrideTwoConvTranspose`).
+  `kernel_init` and `bias_init` (`StrideTwoConv`, `BlockConv`,
+  `StrideTwoConvTranspose`); C_in is `in_channels`, by default x's last axis.
   """
-  kernel = module.param("kernel", module.kernel_init, (3, 3, x.shape[-1], module.features),
+  c_in = x.shape[-1] if in_channels is None else in_channels
+  kernel = module.param("kernel", module.kernel_init, (3, 3, c_in, module.features),
                         jnp.float32)
   bias = module.param("bias", module.bias_init, (module.features,), jnp.float32)
   return nn.dtypes.promote_dtype(x, kernel, bias, dtype=module.dtype)
@@ -450,11 +450,7 @@ class StrideTwoConv(nn.Module):
     is then kept as given, as `dtype` would make it).
     """
     blocks = x if isinstance(x, Blocks) else stride_two_blocks(x)
-    kernel = self.param("kernel", self.kernel_init, (3, 3, blocks.channels, self.features),
-                        jnp.float32)
-    bias = self.param("bias", self.bias_init, (self.features,), jnp.float32)
-    data, kernel, bias = nn.dtypes.promote_dtype(blocks.data, kernel, bias,
-                                                 dtype=self.dtype)
+    data, kernel, bias = _conv3x3_params(self, blocks.data, blocks.channels)
     if blocks.pixel_channels != blocks.channels:  # kernel rows where the blocks' channels are
       kernel = jnp.zeros(kernel.shape[:2] + (blocks.pixel_channels,) + kernel.shape[3:],
                          kernel.dtype).at[:, :, blocks.slots].set(kernel)
