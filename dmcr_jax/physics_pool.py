@@ -153,14 +153,14 @@ class _Stepper:
       compiled.wait(_FIRST_COMPILE_TIMEOUT)
     try:
       for n in rows:
-        records = np.zeros(n, self.record)
-        prev = np.zeros(n, self.record)
+        started, stepped = np.zeros(n, self.record), np.zeros(n, self.record)
         seeds = np.zeros(n, np.int32)
         inputs = {"key": np.asarray(jax.random.key_data(jax.random.split(jax.random.key(0), n))),
                   "action": np.zeros((n, self.action_size), np.float32),
                   **_seed_inputs(SeedBounds(start=seeds, stop=seeds + 1) if ranged else seeds, n)}
-        self._run(dict(inputs, init=np.ones(n, bool)), prev, records)
-        self._run(dict(inputs, init=np.zeros(n, bool)), records, prev)
+        # `_run(inputs, out, prev)`: init into `started`, then a step from it.
+        self._run(dict(inputs, init=np.ones(n, bool)), started, stepped)
+        self._run(dict(inputs, init=np.zeros(n, bool)), stepped, started)
     except Exception:  # noqa: BLE001 - the call that needs it compiles again and raises
       pass
     finally:
