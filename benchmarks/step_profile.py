@@ -19,8 +19,8 @@ frame skip 2 with every visual factor varying:
 - obs_to_device, act, buffer_add: jitted as the loop runs them (one agent),
   median of `--reps` calls ended by `block_until_ready`, compile apart;
 - update: `--pairs` × `sac.update_pair` in one jitted `lax.scan` (two updates
-  each, two batches sampled from a full buffer of the same N and capacity, as
-  `dmcr_jax.train.loop._update` does; unrolled on CPU, as the loop does there);
+  each, two batches sampled from a full buffer of the same N and capacity:
+  `dmcr_jax.train.step.update_pair`, the training step's own; unrolled on CPU);
   per-update ms = call time / (2·pairs); its share of an agent step =
   N·utd·per-update ms.
 
@@ -204,16 +204,13 @@ def profile_learner(sample: dict, capacity: int, batch: int, dtype: str, pairs: 
 
 
 def _updates(agent, buffer, key, pairs: int, config, unroll: bool):
-  """`pairs` × (two batches sampled, `sac.update_pair`), as `dmcr_jax.train.loop._update` runs
-  for one agent; returns the agent."""
+  """`pairs` × `dmcr_jax.train.step.update_pair` (two batches sampled from `buffer`, one
+  `sac.update_pair`) for one agent, scanned; returns the agent."""
   import jax
-  from dmcr_jax.train import replay, sac
+  from dmcr_jax.train import step
 
   def body(agent, k):
-    k_sample, k_update = jax.random.split(k)
-    batches = jax.vmap(lambda kk: replay.sample(buffer, kk, config.batch_size))(
-        jax.random.split(k_sample, 2))
-    return sac.update_pair(agent, batches, k_update, config)[0], None
+    return step.update_pair(agent, buffer, k, config)[0], None
   agent, _ = jax.lax.scan(body, agent, jax.random.split(key, pairs), unroll=unroll)
   return agent
 

@@ -8,7 +8,7 @@ The training camera (seed 0, and every look with the camera factor off) is
 dm_control's, pixel for pixel; held-out cameras (the camera factor) are drawn
 from the original's distribution, position and orientation. The original's
 default is dm_control's but in ball_in_cup and pendulum, whose MJCF it edited:
-there our training camera is not the paper's (README, "Visual seeds").
+there our training camera is not the paper's (docs/visual_seeds.md).
 """
 
 import jax.numpy as jnp

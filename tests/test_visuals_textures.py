@@ -132,12 +132,13 @@ def test_user_folders_sorted_by_name(tmp_path, monkeypatch):
     T.load_bank(tmp_path / "floors" / "..", None)
 
 
-def test_readme_states_the_bank_sizes():
+def test_the_visual_seeds_page_states_the_bank_sizes():
   # It said 300 floors and 100 backgrounds.
   import os
   from dmcr_jax.visuals import textures
-  readme = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "README.md")
-  with open(readme) as f:
+  page = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "docs",
+                      "visual_seeds.md")
+  with open(page) as f:
     text = " ".join(f.read().split())
   assert (f"The texture banks ({textures.NUM_FLOORS} floors in {len(textures.FLOOR_KINDS)} "
           f"kinds, {textures.NUM_BACKGROUNDS} backgrounds") in text

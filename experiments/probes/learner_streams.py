@@ -9,7 +9,7 @@ so the passes that do not depend on the critic's gradient pass can overlap it:
 
 Usage (one variant per process, since XLA flags are read at start-up)::
 
-    python benchmarks/scripts/learner_streams.py {main,td,blocks,td+blocks} [--check] [--pairs 25]
+    python experiments/probes/learner_streams.py {main,td,blocks,td+blocks} [--check] [--pairs 25]
 
 Prints one JSON line: updates/s of `benchmarks.learner`'s scanned update (1 agent,
 bfloat16, batch 256, 84×84×9, DrQ); with ``--check`` also the largest difference of

@@ -7,7 +7,7 @@ workers' GL contexts and the learner's CUDA context, one CUDA stream), this show
 how much, and in which of the env's parts (`env.timings`: physics, transfer, render,
 copy, in ms per agent step).
 
-    MUJOCO_GL=egl python3 benchmarks/scripts/learner_beside_env.py \\
+    MUJOCO_GL=egl python3 experiments/probes/learner_beside_env.py \\
         [--task ball_in_cup-catch] [--num-envs 16] [--renderer pool] [--seconds 10] \\
         [--gl osmesa] [--workers 16]
 

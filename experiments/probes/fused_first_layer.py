@@ -16,7 +16,7 @@ same hash as `augment.drq`; ``table``, read from an int8 table XLA draws first;
 
 Usage::
 
-    python benchmarks/scripts/fused_first_layer.py [--rows 256] [--slots 500] [--interpret]
+    python experiments/probes/fused_first_layer.py [--rows 256] [--slots 500] [--interpret]
 
 Prints each Pallas variant's largest and mean difference from ``xla`` (bfloat16
 rounding of another summation order), then µs per R rows for every variant

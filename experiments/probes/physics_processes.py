@@ -4,7 +4,7 @@ Each process owns N / P envs, jits their agent step once and answers "step" mess
 parent sends every process its actions, then waits for all replies. Prints ms per agent step of all N
 envs (median of --calls) for each P, and, with --taskset, a single process confined to 1 and 2 cores.
 
-    PYTHONPATH=$PWD python3 benchmarks/scripts/physics_processes.py --tasks ball_in_cup-catch,walker-walk
+    PYTHONPATH=$PWD python3 experiments/probes/physics_processes.py --tasks ball_in_cup-catch,walker-walk
 """
 import argparse
 import json

@@ -12,7 +12,7 @@ blocks built once and two cuDNN convolutions.
 
 Usage (from the repository root)::
 
-    python benchmarks/scripts/fused_first_layer_rows.py [--rows 256] [--slots 500] [--interpret]
+    python experiments/probes/fused_first_layer_rows.py [--rows 256] [--slots 500] [--interpret]
 
 Prints the largest and mean difference from XLA's outputs, then µs per R rows
 (best of two rounds of five `lax.fori_loop`s of `--iters` calls).

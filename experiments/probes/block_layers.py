@@ -16,7 +16,7 @@ critic's pass needs).
 
 Usage (from the repository root)::
 
-    python benchmarks/scripts/block_layers.py [--rows 256,512] [--iters 50]
+    python experiments/probes/block_layers.py [--rows 256,512] [--iters 50]
 
 Prints the largest difference between the two forms' outputs, then µs per call of
 each form and pass.

@@ -5,7 +5,7 @@ If dispatching an update call holds the host thread for a large part of the call
 time (kernel launches, loop conditions read back), the host driver cannot step the env
 meanwhile. One JSON line per pair count on stdout:
 
-    python3 benchmarks/scripts/learn_dispatch.py
+    python3 experiments/probes/learn_dispatch.py
 """
 import json
 import os
