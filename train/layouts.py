@@ -17,10 +17,10 @@ has two implementations, picked by ``impl`` as MJX picks its backends:
   (`block_dense`).
 
 `default_impl` is "blocks" on GPUs, where cuDNN runs them faster
-(benchmarks/results/README.md), "pixels" elsewhere. A layer returns its output in
-its implementation's layout (`Blocks` or an array); `Dense` and `to_pixels`
-accept either, and elementwise functions apply to either with `jax.tree.map`
-(the layout's data is its only array). `StrideTwoConvTranspose` is
+(benchmarks/results/README.md), "pixels" elsewhere. Every layer and `to_pixels`
+take images in either layout (an array or `Blocks`); `Conv` returns its output in
+its implementation's layout, and elementwise functions apply to either with
+`jax.tree.map` (`Blocks.data` is its only array). `StrideTwoConvTranspose` is
 ``nn.ConvTranspose(features, (3, 3), strides=(2, 2), padding=((2, a), (2, a)))``
 computed in phases, without the zero-dilated input XLA would build.
 """

@@ -251,8 +251,8 @@ class SACConfig:
   def from_dict(cls, fields: dict[str, Any]) -> SACConfig:
     """The config `dataclasses.asdict` gave `fields` (a run's config.json).
 
-    The fields of `DROPPED_FIELDS` (settings that are no longer options) are
-    dropped if they hold a value the learner still computes.
+    The names of `DROPPED_FIELDS` are dropped if they hold a value the learner
+    computes.
 
     Raises:
       ValueError: for a dropped field with another value; TypeError for an
@@ -269,9 +269,10 @@ class SACConfig:
 
 
 DROPPED_FIELDS = {"stage_inputs": None, "update_delay": 2}
-"""Fields of configs written by earlier versions that `SACConfig.from_dict` drops:
-name → the only value it accepts (None: any). `stage_inputs` chose how the same
-update was computed; `update_delay` is the fixed 2 of `update_pair`."""
+"""Names a run's config.json may hold that are not `SACConfig` fields, which
+`SACConfig.from_dict` drops: name → the only value it accepts (None: any).
+`stage_inputs`: any value, the update is the same; `update_delay`: 2, the schedule
+of `update_pair`."""
 
 
 # --------------------------------------------------------------------------- #
