@@ -17,8 +17,6 @@ as a PyTorch-style loop does.
 Compile time and run time are reported apart; the run time is the median of
 several calls (each ended by ``block_until_ready``) over at least ``--seconds``.
 Rows go to ``--out`` (JSON lines, appended) and a Markdown table beside it.
-``--stage-inputs on,off`` adds a row per value of `sac.SACConfig.stage_inputs` (an
-A/B of how the encoders' inputs are computed; "unstaged" in the agent-loop column).
 ``--cost`` instead prints XLA's cost analysis of one update (GFLOP and GB accessed,
 from the compiled module; nothing runs), which turns updates/s into FLOP/s.
 
@@ -34,7 +32,7 @@ Usage::
 
     python -m dmcr_jax.benchmarks.learner [--agents 1,8] [--dtypes float32,bfloat16] \\
         [--loops vmap,map] [--algos sac_aug,curl,sac_ae] [--augs drq,cj+drq] [--batch 256] \\
-        [--pairs 25] [--stage-inputs on,off] [--devices 1,2,4,8] [--out PATH]
+        [--pairs 25] [--devices 1,2,4,8] [--out PATH]
 """
 
 from __future__ import annotations
@@ -122,15 +120,13 @@ def _agents(k: int, obs_shape, action_size: int, config: sac.SACConfig):
 def scanned_workload(k: int = 1, dtype: str = "float32", agent_loop: str = "vmap",
                      batch: int | None = None, pairs: int = 25, size: int = 84,
                      stack: int = 3, action_size: int = 6, capacity: int = 10_000,
-                     algo: str = "sac_aug", aug: str | None = None,
-                     stage_inputs: bool = sac.SACConfig.stage_inputs, devices: int = 1):
+                     algo: str = "sac_aug", aug: str | None = None, devices: int = 1):
   """`dmcr_jax.train.step.learn_jit` for K agents on full random buffers, ready to call repeatedly.
 
   `batch` None takes the algorithm's default; for CURL the frames are rendered
   ``curl_crop + 16`` pixels (`size` is the encoder's input). `aug` None takes
-  the algorithm's default augmentation (SAC+AUG: DrQ). `stage_inputs` is
-  `sac.SACConfig.stage_inputs`. `devices`: the agents and their buffers are
-  sharded over that many local devices, as `train` shards them
+  the algorithm's default augmentation (SAC+AUG: DrQ). `devices`: the agents and
+  their buffers are sharded over that many local devices, as `train` shards them
   (`dmcr_jax.train.loop.agent_mesh`; it must divide K).
 
   Returns:
@@ -139,7 +135,7 @@ def scanned_workload(k: int = 1, dtype: str = "float32", agent_loop: str = "vmap
     update donates them) and returns the new agents; the first call compiles.
   """
   config = sac.SACConfig(algo=algo, batch_size=batch, compute_dtype=dtype,
-                         stage_inputs=stage_inputs, **({"aug": aug} if aug else {}),
+                         **({"aug": aug} if aug else {}),
                          **({"curl_crop": size} if algo == "curl" else {}))
   if algo == "curl":
     size = size + 16
@@ -166,19 +162,16 @@ def scanned_workload(k: int = 1, dtype: str = "float32", agent_loop: str = "vmap
 
 def bench_scanned(k: int, dtype: str, agent_loop: str, batch: int | None, pairs: int,
                   size: int, stack: int, action_size: int, capacity: int, seconds: float,
-                  algo: str = "sac_aug", aug: str | None = None,
-                  stage_inputs: bool = sac.SACConfig.stage_inputs, devices: int = 1) -> dict:
+                  algo: str = "sac_aug", aug: str | None = None, devices: int = 1) -> dict:
   """Updates/s of `dmcr_jax.train.step.learn_jit` for K agents sharded over `devices` local
   devices (`scanned_workload`); one result row."""
   call, config, size = scanned_workload(k, dtype, agent_loop, batch, pairs, size, stack,
-                                        action_size, capacity, algo, aug, stage_inputs,
-                                        devices)
+                                        action_size, capacity, algo, aug, devices)
   timing = R.measure(call, repeats=3, seconds=seconds, warmup=2)  # the first call compiles
   compile_s, per_call, times = timing.compile_s, timing.run_s, np.asarray(timing.times)
   updates = 2 * pairs
   return dict(kind="scanned", algo=algo, aug=",".join(config.aug_names) or "-", agents=k,
-              devices=devices, dtype=dtype, agent_loop=agent_loop, stage_inputs=stage_inputs,
-              batch=config.batch_size, frame_side=size,
+              devices=devices, dtype=dtype, agent_loop=agent_loop, batch=config.batch_size, frame_side=size,
               pairs_per_call=pairs, compile_s=round(compile_s, 2), reps=int(times.size),
               ms_per_call=round(per_call * 1e3, 3),
               updates_per_s_per_agent=round(updates / per_call, 1),
@@ -232,8 +225,7 @@ def markdown(rows: list[dict]) -> str:
       ("device", "device_kind"), ("kind", "kind"), ("algo", lambda r: r.get("algo", "sac_aug")),
       ("aug", lambda r: r.get("aug", "drq" if r.get("algo", "sac_aug") == "sac_aug" else "-")),
       ("agents", "agents"), ("devices", lambda r: r.get("devices", 1)), ("dtype", "dtype"),
-      ("agent loop", lambda r: r["agent_loop"] + ("" if r.get("stage_inputs", True)
-                                                  else ", unstaged")),
+      ("agent loop", "agent_loop"),
       ("batch", "batch"), ("updates per call", lambda r: 2 * r["pairs_per_call"] or 1),
       ("compile s", lambda r: f"{r['compile_s']:.1f}"),
       ("ms per call", lambda r: f"{r['ms_per_call']:.1f}"),
@@ -291,9 +283,6 @@ def main(argv=None) -> None:
   p.add_argument("--capacity", type=int, default=10_000, help="buffer rows per agent")
   p.add_argument("--seconds", type=float, default=3.0)
   p.add_argument("--no-baseline", action="store_true")
-  p.add_argument("--stage-inputs", default="on" if sac.SACConfig.stage_inputs else "off",
-                 help="comma-separated on/off: sac.SACConfig.stage_inputs, a row each "
-                      "(default: the config's)")
   p.add_argument("--cost", action="store_true",
                  help="only print XLA's cost analysis (GFLOP and GB per update) of each "
                       "algorithm and dtype, one JSON line each, and stop (nothing is timed "
@@ -318,11 +307,6 @@ def main(argv=None) -> None:
   for name in a.algos.split(","):
     if name not in sac.ALGOS:
       p.error(f"--algos: {name!r} is not one of {', '.join(sac.ALGOS)}")
-  stages = []
-  for value in a.stage_inputs.split(","):
-    if value not in ("on", "off"):
-      p.error(f"--stage-inputs: {value!r} is not on or off")
-    stages.append(value == "on")
   for name in a.loops.split(","):
     if name not in loop.AGENT_LOOPS:
       p.error(f"--loops: {name!r} is not one of {', '.join(loop.AGENT_LOOPS)}")
@@ -353,11 +337,10 @@ def main(argv=None) -> None:
     for k in agents:
       for dtype in a.dtypes.split(","):
         for agent_loop in (a.loops.split(",") if k > 1 else ["vmap"]):
-          for stage in stages:
-            for n in counts:
-              todo.append(functools.partial(bench_scanned, k, dtype, agent_loop,
-                                            pairs=a.pairs, algo=algo, aug=aug,
-                                            stage_inputs=stage, devices=n, **shape))
+          for n in counts:
+            todo.append(functools.partial(bench_scanned, k, dtype, agent_loop,
+                                          pairs=a.pairs, algo=algo, aug=aug, devices=n,
+                                          **shape))
   one_device = {}  # a row's setting (all but its device count) → its rate on one
   for job in todo:
     row = dict(job(), **common)
@@ -367,7 +350,7 @@ def main(argv=None) -> None:
       row["x_baseline"] = round(row["agent_updates_per_s"] / baseline, 2)
     if len(counts) > 1 and row["kind"] == "scanned":
       setting = tuple(row[key] for key in ("algo", "aug", "agents", "dtype", "agent_loop",
-                                           "stage_inputs", "batch"))
+                                           "batch"))
       if row["devices"] == 1:
         one_device[setting] = row["agent_updates_per_s"]
       row["scaling_efficiency"] = scaling_efficiency(

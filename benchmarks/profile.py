@@ -234,8 +234,6 @@ def main(argv=None) -> None:
   p.add_argument("--command-buffers", action="store_true",
                  help="keep XLA's CUDA command buffers (graphs) on; off by default, as "
                       "a trace then shows each graph as one kernel (command_buffer_N)")
-  p.add_argument("--stage-inputs", action=argparse.BooleanOptionalAction, default=None,
-                 help="learner: sac.SACConfig.stage_inputs (default: the config's)")
   p.add_argument("--out", required=True, help="folder for summary.{md,json} (and the trace)")
   p.add_argument("--trace-dir", default=None,
                  help="folder for the profiler's trace (default: --out)")
@@ -261,13 +259,10 @@ def main(argv=None) -> None:
     what = f"render_batch, {args.task}, N = {args.batch or 1024}, {args.size}×{args.size}"
   else:
     from dmcr_jax.benchmarks.learner import scanned_workload
-    from dmcr_jax.train.sac import SACConfig
-    stage = SACConfig.stage_inputs if args.stage_inputs is None else args.stage_inputs
     call, _, _ = scanned_workload(dtype=args.dtype, batch=args.batch or 256,
-                                  pairs=args.pairs, size=args.size, stage_inputs=stage)
+                                  pairs=args.pairs, size=args.size)
     what = (f"SAC+AUG, {args.pairs} update pairs per call, batch {args.batch or 256}, "
-            f"{args.size}×{args.size}×9, {args.dtype}, inputs "
-            f"{'staged' if stage else 'not staged'}")
+            f"{args.size}×{args.size}×9, {args.dtype}")
   t0 = time.perf_counter()
   jax.block_until_ready(call())  # compiles
   compile_s = time.perf_counter() - t0

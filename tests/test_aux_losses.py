@@ -8,17 +8,13 @@ short run per algorithm that learns a pixel cue a random policy cannot use.
 import dataclasses
 import functools
 
-import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from dmcr_jax.train import curl, loop, sac, sac_ae
-from dmcr_jax.train.networks import (BlockConv, BlockDense, Decoder, Encoder, StrideTwoConv,
-                                     StrideTwoConvTranspose, block_channel_multiple,
-                                     center_crop, encoder_sides, space_to_depth,
-                                     stride_one_on_blocks, stride_two_blocks)
+from dmcr_jax.train.networks import Decoder, center_crop, encoder_sides
 
 pytestmark = pytest.mark.xdist_group("aux_losses")
 
@@ -106,61 +102,9 @@ def test_decoder_restores_the_observation_shape(side):
   assert decoder.apply(params, jnp.ones((3, 8))).shape == (3, side, side, 9)
 
 
-def assert_same_layer(cases, inputs, pairs):
-  """Each case's two layers give the same outputs and the same gradients of a random
-  linear functional Σ weights·y with respect to the params and the input.
-
-  Args:
-    cases: one tuple per case (printed on failure).
-    inputs: per case (params, x, weights).
-    pairs: per case (layer under test, the flax reference layer), with the same params.
-  """
-  @jax.jit
-  def outputs_and_grads(inputs):  # one compilation for all cases
-    results = []
-    for (params, x, weights), layers in zip(inputs, pairs):
-      for layer in layers:
-        y, vjp = jax.vjp(layer.apply, params, x)
-        results.append((y, *vjp(weights)))
-    return results
-
-  results = outputs_and_grads(inputs)
-  for case, (_, _, weights), got, expect in zip(cases, inputs, results[::2], results[1::2]):
-    assert got[0].shape == expect[0].shape == weights.shape, case
-    assert got[0].dtype == expect[0].dtype == jnp.float32, case
-    for g, e in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(expect)):
-      np.testing.assert_allclose(g, e, rtol=1e-5, atol=1e-5 * np.abs(e).max(),
-                                 err_msg=str(case))
-
-
-def test_phased_output_layer_is_the_strided_conv_transpose():
-  # StrideTwoConvTranspose must compute nn.ConvTranspose(stride 2, padding (2,
-  # after)) of the same params: the same outputs, and the same gradients of a
-  # random linear functional Σ weights·y with respect to the params and the input.
-  # (input side, padding after, C_in, C_out): the Decoder's output layer for sides
-  # 84, 100, 64, 33, 17 and 16, then paddings it never uses (past the last input
-  # pixel, and none). The inputs are not square, to tell the axes apart.
-  cases = [(41, 3, 32, 9), (49, 3, 3, 5), (31, 3, 4, 9), (16, 2, 4, 3), (8, 2, 1, 1),
-           (7, 3, 2, 4), (6, 5, 3, 2), (5, 0, 2, 3)]
-  rng = np.random.default_rng(0)
-  normal = lambda *shape: jnp.asarray(rng.normal(size=shape), jnp.float32)
-  inputs = [({"params": {"kernel": normal(3, 3, c_in, c_out), "bias": normal(c_out)}},
-             normal(2, in_side, in_side + 1, c_in),
-             normal(2, 2 * in_side - 1 + after, 2 * in_side + 1 + after, c_out))
-            for in_side, after, c_in, c_out in cases]
-
-  assert_same_layer(cases, inputs, [
-      (StrideTwoConvTranspose(c_out, after=after),
-       nn.ConvTranspose(c_out, (3, 3), strides=(2, 2), padding=((2, after), (2, after))))
-      for _, after, _, c_out in cases])
-  for case, (params, x, _) in zip(cases, inputs):
-    # The compute dtype is respected; the parameters stay float32.
-    half = StrideTwoConvTranspose(case[3], after=case[1], dtype="bfloat16")
-    assert jax.eval_shape(half.apply, params, x).dtype == jnp.bfloat16, case
-
-
 def test_decoder_parameters_keep_their_names_shapes_and_initialisers():
-  # Checkpoints from before the phased output layer must load unchanged.
+  # The parameter tree checkpoints hold (the output layer's is nn.ConvTranspose's;
+  # tests/test_layouts.py checks the layer itself).
   side, s = 84, encoder_sides(84)[-1]
   decoder = Decoder(side=side, out_channels=9, channels=4)
   shapes = jax.eval_shape(decoder.init, jax.random.key(0), jnp.zeros((1, 8)))
@@ -170,14 +114,6 @@ def test_decoder_parameters_keep_their_names_shapes_and_initialisers():
           "fc": {"kernel": (8, 4 * s * s), "bias": (4 * s * s,)},
           "deconv0": conv, "deconv1": conv, "deconv2": conv,
           "out": {"kernel": (3, 3, 4, 9), "bias": (9,)}}}, is_leaf=lambda t: isinstance(t, tuple))
-  # The same key initialises the phased layer as it did the transposed convolution.
-  x = jnp.zeros((1, 5, 4, 2))
-  new = StrideTwoConvTranspose(3, after=3, bias_init=nn.initializers.ones)
-  old = nn.ConvTranspose(3, (3, 3), strides=(2, 2), padding=((2, 3), (2, 3)),
-                         bias_init=nn.initializers.ones)
-  got, expect = jax.jit(lambda key: (new.init(key, x), old.init(key, x)))(jax.random.key(4))
-  assert jax.tree_util.tree_structure(got) == jax.tree_util.tree_structure(expect)
-  assert jax.tree_util.tree_all(jax.tree_util.tree_map(np.array_equal, got, expect))
 
 
 @functools.lru_cache(maxsize=None)
@@ -312,123 +248,3 @@ def test_learns_to_read_a_pixel_cue(algo):
   after = score(agent)
   assert int(agent.step) == 2 * PIXEL_CUE_PAIRS
   assert after > 0.8 and after > before + 0.5, (before, after)
-
-
-def test_block_first_layer_is_the_strided_conv():
-  # StrideTwoConv must compute nn.Conv(3×3, stride 2, VALID) of the same params:
-  # the same outputs and gradients (params and input), for even and odd sides
-  # (the encoder's 84 and CURL's 100, then small ones), non-square inputs.
-  cases = [(84, 85, 9, 32), (100, 100, 9, 4), (21, 20, 3, 5), (3, 4, 2, 3), (6, 7, 1, 1)]
-  rng = np.random.default_rng(1)
-  normal = lambda *shape: jnp.asarray(rng.normal(size=shape), jnp.float32)
-  inputs = [({"params": {"kernel": normal(3, 3, c_in, c_out), "bias": normal(c_out)}},
-             normal(2, h, w, c_in),
-             normal(2, (h - 3) // 2 + 1, (w - 3) // 2 + 1, c_out))
-            for h, w, c_in, c_out in cases]
-
-  assert_same_layer(cases, inputs, [
-      (StrideTwoConv(c_out), nn.Conv(c_out, (3, 3), strides=(2, 2), padding="VALID"))
-      for *_, c_out in cases])
-  for case, (params, x, _) in zip(cases, inputs):
-    half = StrideTwoConv(case[3], dtype="bfloat16")
-    assert jax.eval_shape(half.apply, params, x).dtype == jnp.bfloat16, case
-  # Blocks padded to 64 channels (16-bit inputs on GPUs) convolve the same.
-  assert [block_channel_multiple(dtype, platform) for dtype, platform in
-          (("bfloat16", "gpu"), ("float32", "gpu"), ("bfloat16", "cpu"))] == [32, 8, 8]
-  # There frames of 3 channels take 4 each (9 → 16 per pixel): the same outputs and
-  # parameter gradients; elsewhere (8) the 36 channels in order, padded to 40.
-  for (params, x, _), (*_, c_in, c_out) in zip(inputs, cases):
-    for multiple in (32, 8):
-      blocks = stride_two_blocks(x, channel_multiple=multiple)
-      if c_in == 9:
-        assert (blocks.data.shape[-1], blocks.pixel_channels) == (
-            (64, 16) if multiple == 32 else (40, 9))
-      conv = nn.Conv(c_out, (3, 3), strides=(2, 2), padding="VALID")
-      expect = conv.apply(params, x)
-      np.testing.assert_allclose(StrideTwoConv(c_out).apply(params, blocks), expect,
-                                 rtol=1e-5, atol=1e-5 * np.abs(expect).max())
-      got, want = (jax.grad(lambda p, f=f: jnp.sum(jnp.sin(f(p))))(params) for f in (
-          lambda p: StrideTwoConv(c_out).apply(p, blocks), lambda p: conv.apply(p, x)))
-      for g, w in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
-        np.testing.assert_allclose(g, w, rtol=1e-4, atol=1e-4 * np.abs(w).max())
-  # The same key initialises it as it did nn.Conv, under the encoder's name.
-  x = jnp.zeros((1, 84, 84, 9))
-  got, expect = jax.jit(lambda key: (
-      StrideTwoConv(32, kernel_init=nn.initializers.orthogonal()).init(key, x),
-      nn.Conv(32, (3, 3), strides=(2, 2), padding="VALID",
-              kernel_init=nn.initializers.orthogonal()).init(key, x)))(jax.random.key(3))
-  assert jax.tree_util.tree_all(jax.tree_util.tree_map(np.array_equal, got, expect))
-  with pytest.raises(ValueError, match="H, W ≥ 3"):
-    StrideTwoConv(4).init(jax.random.key(0), jnp.zeros((1, 2, 5, 3)))
-
-
-def _blocks(x):
-  """`space_to_depth` of (B, H, W, C) images, odd sides padded by one zero pixel."""
-  return space_to_depth(x, x.shape[1] + x.shape[1] % 2, x.shape[2] + x.shape[2] % 2)
-
-
-def _pixels(blocks, height, width):
-  """The inverse of `_blocks`: the first height × width pixels of the blocks."""
-  b, h, w, c4 = blocks.shape
-  x = blocks.reshape(b, h, w, 2, 2, c4 // 4).transpose(0, 1, 3, 2, 4, 5)
-  return x.reshape(b, 2 * h, 2 * w, c4 // 4)[:, :height, :width]
-
-
-def test_block_stride_one_layers_are_the_convolutions_and_the_dense_layer():
-  # BlockConv between 2×2 blocks and back must compute nn.Conv(3×3, VALID) of the same
-  # params, BlockDense nn.Dense of the flattened image (the blocks' pixels past the
-  # image ignored): the same outputs and gradients (params and input), for even and
-  # odd sides (the encoder's 41), non-square inputs.
-  rng = np.random.default_rng(2)
-  normal = lambda *shape: jnp.asarray(rng.normal(size=shape), jnp.float32)
-  conv_cases = [(41, 41, 32, 32), (20, 21, 3, 5), (3, 4, 2, 3), (6, 7, 1, 1)]
-  on_blocks = lambda layer, h, w: type("OnBlocks", (), {"apply": staticmethod(
-      lambda p, x: _pixels(layer.apply(p, _blocks(x)), h - 2, w - 2))})
-  assert_same_layer(
-      conv_cases,
-      [({"params": {"kernel": normal(3, 3, c_in, c_out), "bias": normal(c_out)}},
-        normal(2, h, w, c_in), normal(2, h - 2, w - 2, c_out)) for h, w, c_in, c_out in conv_cases],
-      [(on_blocks(BlockConv(c_out), h, w), nn.Conv(c_out, (3, 3), padding="VALID"))
-       for h, w, _, c_out in conv_cases])
-  # The image is the first H × W pixels of larger blocks: the rest must not count.
-  dense_cases = [(35, 35, 32, 50, 1), (5, 4, 3, 7, 2), (1, 1, 1, 1, 0)]
-  with_rest = lambda layer, extra: type("WithRest", (), {"apply": staticmethod(
-      lambda p, x: layer.apply(p, _blocks(jnp.pad(x, ((0, 0), (0, extra), (0, extra), (0, 0)),
-                                                  constant_values=7.0))))})
-  flat_dense = lambda features: type("FlatDense", (), {"apply": staticmethod(
-      lambda p, x: nn.Dense(features).apply(p, x.reshape(x.shape[0], -1)))})
-  assert_same_layer(
-      dense_cases,
-      [({"params": {"kernel": normal(h * w * c, f), "bias": normal(f)}},
-        normal(2, h, w, c), normal(2, f)) for h, w, c, f, _ in dense_cases],
-      [(with_rest(BlockDense(f, (h, w)), extra), flat_dense(f))
-       for h, w, _, f, extra in dense_cases])
-  with pytest.raises(ValueError, match="2×2 blocks"):
-    BlockConv(4).init(jax.random.key(0), jnp.zeros((1, 3, 3, 6)))
-  with pytest.raises(ValueError, match="do not hold a 5×4 image"):
-    BlockDense(3, (5, 4)).init(jax.random.key(0), jnp.zeros((1, 2, 2, 4)))
-
-
-def test_encoder_on_blocks_is_the_encoder_on_pixels():
-  # Encoder(blocks=True) must be the same function of the same parameters as on
-  # pixels: the same initial parameters from one key, outputs and gradients; at the
-  # paper's size, CURL's crop, sides that leave one output pixel, a single layer.
-  assert [stride_one_on_blocks(platform) for platform in ("gpu", "cpu", "tpu")] == [
-      True, False, False]
-  rng = np.random.default_rng(3)
-  for side, layers, channels, input_size in ((84, 4, 32, None), (100, 4, 4, 84),
-                                             (15, 4, 4, None), (16, 2, 3, None),
-                                             (84, 1, 4, None)):
-    obs = jnp.asarray(rng.integers(0, 256, (2, side, side, 9)), jnp.uint8)
-    pixels = Encoder(channels=channels, feature_dim=6, num_layers=layers,
-                     input_size=input_size, blocks=False)
-    blocks = pixels.clone(blocks=True)
-    params, block_params = (e.init(jax.random.key(4), obs) for e in (pixels, blocks))
-    assert jax.tree_util.tree_all(jax.tree_util.tree_map(np.array_equal, params, block_params))
-    case = (side, layers, input_size)
-    expect, got = (e.apply(params, obs) for e in (pixels, blocks))
-    np.testing.assert_allclose(got, expect, rtol=1e-5, atol=1e-5, err_msg=str(case))
-    want, grads = (jax.grad(lambda p, e=e: jnp.sum(jnp.sin(3 * e.apply(p, obs))))(params)
-                   for e in (pixels, blocks))
-    for g, w in zip(jax.tree_util.tree_leaves(grads), jax.tree_util.tree_leaves(want)):
-      np.testing.assert_allclose(g, w, rtol=1e-4, atol=1e-4 * np.abs(w).max(), err_msg=str(case))

@@ -127,7 +127,7 @@ def test_learner_measures_each_device_count_and_reports_scaling(tmp_path):
           rate = 100.0 * k * (1 if devices == 1 else 0.8 * devices)
           return dict(kind="scanned", algo="sac_aug", aug="drq", agents=k,
                       devices=devices, dtype=dtype, agent_loop=agent_loop,
-                      stage_inputs=True, batch=4, frame_side=16, pairs_per_call=1,
+                      batch=4, frame_side=16, pairs_per_call=1,
                       compile_s=0.1, reps=3, ms_per_call=1.0,
                       updates_per_s_per_agent=rate / k, agent_updates_per_s=rate)
       learner.bench_scanned = fake_bench

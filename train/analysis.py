@@ -27,10 +27,8 @@ import numpy as np
 from dmcr_jax.train import loop
 from dmcr_jax.train.step import to_env_action
 from dmcr_jax.train.evaluate import greedy_action, held_out_seeds
-from dmcr_jax.train.networks import StrideTwoConv, center_crop
-
-CONV_LAYERS = (nn.Conv, StrideTwoConv)
-"""The encoder's convolution modules (its first is a `StrideTwoConv`)."""
+from dmcr_jax.train import layouts
+from dmcr_jax.train.networks import center_crop
 
 
 def _agent(run_dir: str, index: int):
@@ -132,11 +130,12 @@ def encoder_invariance(run_dir: str, out_dir: str, agent: int = 0, looks: int = 
 def conv_activations(encoder, params, obs: jax.Array) -> list[jax.Array]:
   """The channel mean of every ReLU'd convolution of `encoder`: [(B, h_i, w_i)].
 
-  The encoder runs on pixels (``blocks=False``: the same function) so that every
+  The encoder runs on pixels (``impl="pixels"``: the same function) so that every
   layer's output is an image.
   """
-  _, state = encoder.clone(blocks=False).apply(params, obs, capture_intermediates=lambda m, _: isinstance(m, CONV_LAYERS),
-                           mutable=["intermediates"])
+  _, state = encoder.clone(impl="pixels").apply(
+      params, obs, capture_intermediates=lambda m, _: isinstance(m, layouts.Conv),
+      mutable=["intermediates"])
   inter = state["intermediates"]
   names = sorted((k for k in inter if k.startswith("conv")), key=lambda k: int(k[4:]))
   return [jnp.mean(nn.relu(inter[k]["__call__"][0].astype(jnp.float32)), axis=-1)

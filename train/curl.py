@@ -14,7 +14,7 @@ the observation is center-cropped (`networks.Encoder.input_size`).
 The auxiliary task's interface, shared with `dmcr_jax.train.sac_ae`: `PARTNER` (the
 parameters trained beside the encoder), `init_partner`, `optimizer` and
 `aux_loss`. The update order (critic, then actor, α and targets every
-`update_delay` updates, then the contrastive step every update) and the wiring
+second update, then the contrastive step every update) and the wiring
 into the learner are in `dmcr_jax.train.sac`.
 """
 

@@ -532,7 +532,7 @@ def load_config(out_dir: str) -> TrainConfig:
   raw["seeds"] = tuple(raw["seeds"])
   if raw.get("egl_devices") is not None:
     raw["egl_devices"] = tuple(raw["egl_devices"])
-  raw["sac"] = sac.SACConfig(**raw["sac"])
+  raw["sac"] = sac.SACConfig.from_dict(raw["sac"])
   return TrainConfig(**raw)
 
 

@@ -3,8 +3,10 @@ with `SACConfig.algo`, also its baselines CURL and SAC+AE on the same SAC.
 
 One immutable `AgentState`; `update` is pure and jittable, with ``update_actor``
 static, so `jax.vmap` over K agents and `jax.lax.scan` over `update_pair` (a
-critic-only update, then a full one: "actor and target updates every 2 steps")
-stay cheap. The losses, for a batch of B transitions (o, a, r, d, o′):
+critic-only update, then a full one: the paper's "actor and target updates every
+2 steps", a fixed part of the algorithm here) stay cheap. The losses take uint8
+observations; how the encoder computes on them is its own affair
+(`dmcr_jax.train.networks.Encoder`). The losses, for a batch of B transitions (o, a, r, d, o′):
 
 - β mixing (paper Sec. 3.2): z is the augmentation (`dmcr_jax.augment.get(aug)`,
   one draw per sample shared by o, o′ and the frames of the stack). The first
@@ -55,8 +57,8 @@ import optax
 
 from dmcr_jax import augment
 from dmcr_jax.train import curl, sac_ae
-from dmcr_jax.train.networks import (LOG_STD_MAX, LOG_STD_MIN, Actor, Blocks, Critic, Decoder,
-                            Encoder, encoder_input, encoder_sides)
+from dmcr_jax.train.networks import (LOG_STD_MAX, LOG_STD_MIN, Actor, Critic, Decoder, Encoder,
+                                     encoder_sides)
 from dmcr_jax.train.replay import Batch  # what `replay.sample` returns and `update` consumes
 
 Params = Any
@@ -114,7 +116,6 @@ class SACConfig:
     target_entropy: H̄ of the temperature loss; None means −|A| (Table 6).
     encoder_tau: Polyak rate of the target encoder (.05).
     critic_tau: Polyak rate of the target critic (.01).
-    update_delay: one actor/α/target update per this many critic updates (2).
     beta: fraction of each batch that is augmented (Sec. 3.2: .9; 1 for CURL
       and SAC+AE, which augment every row when they augment).
     lam: weight λ of the feature-matching term (Sec. 3.2: 1e-5; 0 for CURL and
@@ -138,11 +139,9 @@ class SACConfig:
     decoder_latent_lambda: SAC+AE's weight λ_z of the latent L2 penalty (1e-6).
     decoder_weight_lambda: SAC+AE's decoder weight decay λ_w (1e-7).
     decoder_bits: bits per value of SAC+AE's reconstruction target (5).
-    stage_inputs: how `update` computes the encoders' inputs (the same values
-      either way): False (default) leaves XLA free to fuse the sampling,
-      augmentation and mixing into each distinct input as it is cut into the
-      first layer's blocks; True first writes the augmented, mixed uint8
-      observations to memory once (`jax.lax.optimization_barrier`).
+
+  The actor, α and the targets update every second critic update (Table 6), as
+  `update_pair` runs them.
   """
   algo: str = "sac_aug"
   batch_size: int | None = None
@@ -155,7 +154,6 @@ class SACConfig:
   target_entropy: float | None = None
   encoder_tau: float = 0.05
   critic_tau: float = 0.01
-  update_delay: int = 2
   beta: float | None = None
   lam: float | None = None
   aug: str | None = None
@@ -169,7 +167,6 @@ class SACConfig:
   decoder_latent_lambda: float = 1e-6
   decoder_weight_lambda: float = 1e-7
   decoder_bits: int = 5
-  stage_inputs: bool = False
 
   def __post_init__(self):
     def fail(field, value, want):
@@ -181,8 +178,7 @@ class SACConfig:
       if getattr(self, field) is None:
         object.__setattr__(self, field, value)
 
-    for field in ("batch_size", "update_delay", "feature_dim", "hidden_dim",
-                  "conv_channels", "curl_crop"):
+    for field in ("batch_size", "feature_dim", "hidden_dim", "conv_channels", "curl_crop"):
       value = getattr(self, field)
       if not _is_int(value) or value < 1:
         fail(field, value, "a positive int")
@@ -224,8 +220,6 @@ class SACConfig:
         fail(field, value, "a finite number ≥ 0")
     if not _is_int(self.decoder_bits) or not 1 <= self.decoder_bits <= 8:
       fail("decoder_bits", self.decoder_bits, "an int in 1 … 8")
-    if not isinstance(self.stage_inputs, bool):
-      fail("stage_inputs", self.stage_inputs, "a bool")
     if self.algo == "curl" and (self.aug != "none" or self.beta != 1 or self.lam != 0):
       raise ValueError(
           "SACConfig(algo='curl'): CURL crops every row itself (observations rendered "
@@ -252,6 +246,33 @@ class SACConfig:
     if self.target_entropy is None:
       return -float(action_size)
     return float(self.target_entropy)
+
+  @classmethod
+  def from_dict(cls, fields: dict[str, Any]) -> SACConfig:
+    """The config `dataclasses.asdict` gave `fields` (a run's config.json).
+
+    The names of `DROPPED_FIELDS` are dropped if they hold a value the learner
+    computes.
+
+    Raises:
+      ValueError: for a dropped field with another value; TypeError for an
+        unknown field.
+    """
+    fields = dict(fields)
+    for name, only in DROPPED_FIELDS.items():
+      if name in fields:
+        value = fields.pop(name)
+        if only is not None and value != only:
+          raise ValueError(f"SACConfig.{name} = {value!r} is not supported: the learner "
+                           f"runs {name} = {only!r} only")
+    return cls(**fields)
+
+
+DROPPED_FIELDS = {"stage_inputs": None, "update_delay": 2}
+"""Names a run's config.json may hold that are not `SACConfig` fields, which
+`SACConfig.from_dict` drops: name → the only value it accepts (None: any).
+`stage_inputs`: any value, the update is the same; `update_delay`: 2, the schedule
+of `update_pair`."""
 
 
 # --------------------------------------------------------------------------- #
@@ -525,58 +546,6 @@ def augment_and_mix(key: jax.Array, batch: Batch, aug, beta: float
                         next_obs=mix(z_next_obs, batch.next_obs)), z_obs
 
 
-class EncoderInputs(NamedTuple):
-  """The encoder's inputs in one update, each prepared once (`encoder_inputs`).
-
-  Attributes:
-    critic: `Blocks` of the critic's pass (with gradient): the mixed ô, then,
-      with λ > 0, the z(o) rows ô lacks (rows n…B−1 of z(o)).
-    clean: `Blocks` of o[:n], the λ term's e(o) rows not in the critic's pass
-      (no gradient); None when λ = 0 or n = 0.
-    next_obs: `Blocks` of ô′, for the online and the target encoder (TD target).
-    obs: uint8 ô (B, H, W, C), the actor's input (encoded after the critic step).
-  """
-  critic: Blocks
-  clean: Blocks | None
-  next_obs: Blocks
-  obs: jax.Array
-
-
-def encoder_inputs(encoder: Encoder, batch: Batch, mixed: Batch, z_obs: jax.Array | None,
-                   config: SACConfig, stage: bool = False) -> EncoderInputs:
-  """The encoders' inputs of `critic_loss`, `td_target` and `actor_loss`, prepared once.
-
-  Args:
-    encoder: the encoder module (its dtype and crop).
-    batch: the un-augmented batch.
-    mixed: `augment_and_mix`'s mixed batch (CURL: its crops).
-    z_obs: z(o), all B rows (read only when λ > 0).
-    config: the hyperparameters (β, λ).
-    stage: first write the uint8 observations each input is cut from to memory
-      (`jax.lax.optimization_barrier`), so the work that made them (sampling,
-      augmentation, mixing) runs once, not inside each input's preparation.
-
-  Returns:
-    An `EncoderInputs`.
-  """
-  size = batch.obs.shape[0]
-  n = num_augmented(size, config.beta)
-  if config.lam > 0:
-    # (Empty pieces are left out statically: n is a Python int.)
-    parts = [x for x in (mixed.obs, z_obs[n:]) if x.shape[0]]
-    critic = jnp.concatenate(parts, axis=0) if len(parts) > 1 else parts[0]
-    clean = batch.obs[:n] if n else None
-  else:
-    critic, clean = mixed.obs, None
-  images = (critic, clean, mixed.next_obs)
-  if stage:
-    images = jax.lax.optimization_barrier(images)
-  critic, clean, next_obs = images
-  prepare = lambda x: None if x is None else encoder_input(encoder, x)
-  return EncoderInputs(critic=prepare(critic), clean=prepare(clean),
-                       next_obs=prepare(next_obs), obs=critic[:size])
-
-
 # --------------------------------------------------------------------------- #
 # Losses.
 # --------------------------------------------------------------------------- #
@@ -591,7 +560,7 @@ def td_target(agent: AgentState, next_obs: jax.Array, reward: jax.Array,
 
   Args:
     agent: the agent (online and target parameters, log α).
-    next_obs: uint8 (B, H, W, C), o′ (already mixed), or its `encoder_input`.
+    next_obs: uint8 (B, H, W, C), o′ (already mixed).
     reward: (B,).
     discount: (B,).
     key: a `jax.random` key for a′.
@@ -601,8 +570,6 @@ def td_target(agent: AgentState, next_obs: jax.Array, reward: jax.Array,
     float32 (B,).
   """
   nets, params, targets = agent.networks, agent.params, agent.target_params
-  if not isinstance(next_obs, Blocks):  # prepared once for both encoders
-    next_obs = encoder_input(nets.encoder, next_obs)
   features = nets.encoder.apply(params["encoder"], next_obs)
   next_action, next_log_prob = nets.actor.apply(params["actor"], features, key,
                                                 method=Actor.sample)
@@ -614,8 +581,8 @@ def td_target(agent: AgentState, next_obs: jax.Array, reward: jax.Array,
 
 
 def critic_loss(critic_params: Params, agent: AgentState, batch: Batch, mixed: Batch,
-                z_obs: jax.Array, key: jax.Array, config: SACConfig,
-                inputs: EncoderInputs | None = None) -> tuple[jax.Array, Metrics]:
+                z_obs: jax.Array, key: jax.Array, config: SACConfig
+                ) -> tuple[jax.Array, Metrics]:
   """L_encoder = L_critic + L_λ, a function of ``{"encoder", "critic"}`` (module doc).
 
   L_critic = mean_b (Q_1 − y)² + mean_b (Q_2 − y)² on the mixed batch;
@@ -633,7 +600,6 @@ def critic_loss(critic_params: Params, agent: AgentState, batch: Batch, mixed: B
     z_obs: `augment_and_mix`'s z(o), all B rows.
     key: a `jax.random` key for a′ in the target.
     config: the hyperparameters (β, λ, γ).
-    inputs: `encoder_inputs` of these batches (None: computed here).
 
   Returns:
     (L_encoder, metrics with "critic_loss" (L_critic), "lam_loss" (L_λ) and "q"
@@ -642,25 +608,23 @@ def critic_loss(critic_params: Params, agent: AgentState, batch: Batch, mixed: B
   encoder, critic = agent.networks.encoder, agent.networks.critic
   size = batch.obs.shape[0]
   n = num_augmented(size, config.beta)
-  if inputs is None:
-    inputs = encoder_inputs(encoder, batch, mixed, z_obs, config)
-  y = td_target(agent, inputs.next_obs, mixed.reward, mixed.discount, key, config)
+  y = td_target(agent, mixed.next_obs, mixed.reward, mixed.discount, key, config)
   if config.lam > 0:
     # One pass with gradient over the mixed batch and the z(o) rows it lacks.
     # (Empty pieces are left out statically: n is a Python int.)
     cat = lambda parts: jnp.concatenate([x for x in parts if x.shape[0]], axis=0)
-    all_features = encoder.apply(critic_params["encoder"], inputs.critic)
+    all_features = encoder.apply(critic_params["encoder"], cat([mixed.obs, z_obs[n:]]))
     features = all_features[:size]
     z_features = cat([all_features[:n], all_features[size:]])
     # e(o) is a constant (the paper: "only let gradients flow through the
     # e(z(o)) pass"; DESIGN.md's formula puts the sg on the wrong side).
     frozen_encoder = jax.lax.stop_gradient(critic_params["encoder"])
-    clean_head = [encoder.apply(frozen_encoder, inputs.clean)] if n else []
+    clean_head = [encoder.apply(frozen_encoder, batch.obs[:n])] if n else []
     clean = cat(clean_head + [features[n:]])
     diff = jax.lax.stop_gradient(clean) - z_features
     lam_loss = config.lam * jnp.mean(jnp.sum(jnp.square(diff), axis=-1))
   else:
-    features = encoder.apply(critic_params["encoder"], inputs.critic)
+    features = encoder.apply(critic_params["encoder"], mixed.obs)
     lam_loss = jnp.zeros((), jnp.float32)
   q1, q2 = critic.apply(critic_params["critic"], features, mixed.action)
   td_loss = jnp.mean(jnp.square(q1 - y)) + jnp.mean(jnp.square(q2 - y))
@@ -790,13 +754,11 @@ def update(agent: AgentState, batch: Batch, key: jax.Array, config: SACConfig, *
   else:
     mixed, z_obs = augment_and_mix(aug_key, batch, agent_augmentation(agent, config),
                                    config.beta)
-  inputs = encoder_inputs(agent.networks.encoder, batch, mixed, z_obs, config,
-                          stage=config.stage_inputs)
 
   critic_params = {"encoder": agent.params["encoder"],
                    "critic": agent.params["critic"]}
   grads, metrics = jax.grad(critic_loss, has_aux=True)(
-      critic_params, agent, batch, mixed, z_obs, target_key, config, inputs)
+      critic_params, agent, batch, mixed, z_obs, target_key, config)
   updates, critic_opt_state = critic_optimizer(config).update(
       grads, agent.critic_opt_state, critic_params)
   critic_params = optax.apply_updates(critic_params, updates)
@@ -806,7 +768,7 @@ def update(agent: AgentState, batch: Batch, key: jax.Array, config: SACConfig, *
   if update_actor:
     actor_params = agent.params["actor"]
     (loss, log_prob), grads = jax.value_and_grad(actor_loss, has_aux=True)(
-        actor_params, agent, inputs.obs, actor_key)
+        actor_params, agent, mixed.obs, actor_key)
     updates, actor_opt_state = actor_optimizer(config).update(
         grads, agent.actor_opt_state, actor_params)
     actor_params = optax.apply_updates(actor_params, updates)
@@ -823,8 +785,8 @@ def update(agent: AgentState, batch: Batch, key: jax.Array, config: SACConfig, *
     agent = soft_update_targets(agent, config)
     metrics.update(actor_loss=loss, alpha_loss=temp_loss, entropy=-jnp.mean(log_prob))
   if config.algo != "sac_aug":
-    aux_input = positive if config.algo == "curl" else inputs.obs
-    agent, aux_metrics = aux_step(agent, inputs.obs, aux_input,
+    aux_input = positive if config.algo == "curl" else mixed.obs
+    agent, aux_metrics = aux_step(agent, mixed.obs, aux_input,
                                   jax.random.fold_in(key, 3), config)
     metrics.update(aux_metrics)
   metrics["alpha"] = jnp.exp(agent.log_alpha)
@@ -857,59 +819,34 @@ def aux_step(agent: AgentState, obs: jax.Array, aux_input: jax.Array, key: jax.A
                        aux_opt_state=aux_opt_state), metrics
 
 
-def update_cycle(agent: AgentState, batches: Batch, key: jax.Array,
-                 config: SACConfig) -> tuple[AgentState, Metrics]:
-  """`config.update_delay` updates: critic-only ones, then one with the actor.
+def update_pair(agent: AgentState, batches: Batch, key: jax.Array,
+                config: SACConfig) -> tuple[AgentState, Metrics]:
+  """A critic-only update, then a full one: "actor and target updates every 2 steps".
 
-  Scanning this over cycles realises "actor and target updates every
-  `update_delay` steps" (Table 6: 2) with no traced condition, so it vmaps over
-  agents without computing both branches. The updates are unrolled.
+  Scanning this over pairs realises the paper's update schedule (Table 6) with no
+  traced condition, so it vmaps over agents without computing both branches.
 
   Args:
     agent: the agent.
-    batches: a `Batch` whose arrays have a leading axis of `config.update_delay`
-      (one batch per update).
+    batches: a `Batch` whose arrays have a leading axis of 2 (one batch per update).
     key: a `jax.random` key; update i uses ``fold_in(key, i)``.
     config: the hyperparameters.
 
   Returns:
     (new agent, metrics): "critic_loss", "lam_loss" and "q" averaged over the
-    cycle; the rest from its last (actor) update.
+    pair; the rest from its second (actor) update.
   """
-  delay = config.update_delay
   leading = {x.shape[0] if x.ndim else None for x in jax.tree_util.tree_leaves(batches)}
-  if leading != {delay}:
-    raise ValueError(f"batches must have a leading axis of update_delay = {delay} "
-                     f"on every array, got leading sizes {sorted(map(str, leading))}")
+  if leading != {2}:
+    raise ValueError(f"batches must have a leading axis of 2 (one batch per update) on "
+                     f"every array, got leading sizes {sorted(map(str, leading))}")
   history = []
-  for i in range(delay):
+  for i in range(2):
     batch = jax.tree_util.tree_map(lambda x, i=i: x[i], batches)
     agent, metrics = update(agent, batch, jax.random.fold_in(key, i), config,
-                            update_actor=i == delay - 1)
+                            update_actor=i == 1)
     history.append(metrics)
   metrics = dict(history[-1])
   for name in ("critic_loss", "lam_loss", "q"):
     metrics[name] = jnp.mean(jnp.stack([m[name] for m in history]))
   return agent, metrics
-
-
-def update_pair(agent: AgentState, batches: Batch, key: jax.Array,
-                config: SACConfig) -> tuple[AgentState, Metrics]:
-  """One critic-only update, then one full update (`update_cycle` for delay 2).
-
-  Args:
-    agent: the agent.
-    batches: a `Batch` whose arrays have a leading axis of 2.
-    key: a `jax.random` key.
-    config: the hyperparameters; `update_delay` must be 2 (the paper's value).
-
-  Returns:
-    (new agent, metrics) as `update_cycle`.
-
-  Raises:
-    ValueError: if `config.update_delay` is not 2 (use `update_cycle`).
-  """
-  if config.update_delay != 2:
-    raise ValueError(f"update_pair is for update_delay = 2, got "
-                     f"{config.update_delay}; use update_cycle")
-  return update_cycle(agent, batches, key, config)
