@@ -1,7 +1,7 @@
 """An augmentation checker: the properties the SAC+AUG learner relies on.
 
 Like gymnasium's env checker, `check(aug)` runs an augmentation on real
-observations and names each property it breaks. The learner (`dmcr_jax.train.sac.
+observations and names each property it breaks. The learner (`dmcr_jax.train.losses.
 augment_and_mix`) calls ``aug(key, (obs, next_obs))`` on uint8 batches
 (B, H, W, 3·stack) inside `jax.jit`, under `jax.vmap` over agents; the
 appendix asks for one draw per sample, shared by the frames of its stack and by

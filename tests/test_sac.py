@@ -1,4 +1,5 @@
-"""Tests of the SAC+AUG learner core (train/networks.py, train/sac.py).
+"""Tests of the SAC+AUG learner core (train/networks.py, train/losses.py,
+train/sac_config.py, train/sac.py).
 
 Tiny networks on 16×16×9 images: the losses against NumPy recomputations from the
 modules' outputs, the Polyak targets, β row mixing, where the λ term's and the
@@ -16,7 +17,7 @@ import numpy as np
 import pytest
 
 from dmcr_jax import augment
-from dmcr_jax.train import sac
+from dmcr_jax.train import losses, sac
 from dmcr_jax.train.networks import (Actor, squash_log_std, tanh_gaussian_log_prob,
                             tanh_gaussian_sample)
 
@@ -143,10 +144,10 @@ def test_network_shapes_and_act(agent, batch):
 @pytest.mark.parametrize("beta", [0.0, 0.9, 1.0])
 def test_critic_loss_matches_numpy(agent, batch, beta):
   config = dataclasses.replace(CONFIG, beta=beta)
-  mixed, z_obs = sac.augment_and_mix(jax.random.key(5), batch, augment.get("drq"), beta)
+  mixed, z_obs = losses.augment_and_mix(jax.random.key(5), batch, augment.get("drq"), beta)
   key = jax.random.key(7)
   params = {"encoder": agent.params["encoder"], "critic": agent.params["critic"]}
-  loss, metrics = sac.critic_loss(params, agent, batch, mixed, z_obs, key, config)
+  loss, metrics = losses.critic_loss(params, agent, batch, mixed, z_obs, key, config)
 
   alpha = math.exp(float(agent.log_alpha))
   next_action, next_log_prob = _sample(agent, _encode(agent, mixed.next_obs), key)
@@ -167,7 +168,7 @@ def test_critic_loss_matches_numpy(agent, batch, beta):
 
 def test_actor_and_alpha_losses_match_numpy(agent, batch):
   key = jax.random.key(11)
-  loss, log_prob = sac.actor_loss(agent.params["actor"], agent, batch.obs, key)
+  loss, log_prob = losses.actor_loss(agent.params["actor"], agent, batch.obs, key)
   features = _encode(agent, batch.obs)
   action, expected_log_prob = _sample(agent, features, key)
   q1, q2 = _q(agent, features, action)
@@ -179,7 +180,7 @@ def test_actor_and_alpha_losses_match_numpy(agent, batch):
   target_entropy = CONFIG.entropy_target(ACTION_SIZE)
   assert target_entropy == -ACTION_SIZE
   value, (grad_log_alpha, grad_log_prob) = jax.value_and_grad(
-      sac.alpha_loss, argnums=(0, 1))(agent.log_alpha, log_prob, target_entropy)
+      losses.alpha_loss, argnums=(0, 1))(agent.log_alpha, log_prob, target_entropy)
   expected = np.mean(-alpha * (expected_log_prob + target_entropy))
   np.testing.assert_allclose(value, expected, rtol=1e-5)
   np.testing.assert_allclose(grad_log_alpha, expected, rtol=1e-5)  # d e^x/dx = e^x
@@ -187,7 +188,7 @@ def test_actor_and_alpha_losses_match_numpy(agent, batch):
 
 
 def test_soft_update_targets_matches_numpy(agent):
-  new = sac.soft_update_targets(agent, CONFIG)
+  new = losses.soft_update_targets(agent, CONFIG)
   for name, tau in (("encoder", 0.05), ("critic", 0.01)):
     _assert_tree(lambda got, want: np.testing.assert_allclose(got, want, rtol=1e-6,
                                                               atol=1e-7),
@@ -205,16 +206,16 @@ def test_soft_update_targets_matches_numpy(agent):
 
 
 def test_num_augmented():
-  assert sac.num_augmented(256, 0.9) == 230
-  assert sac.num_augmented(100, 0.29) == 29
-  assert sac.num_augmented(8, 0.0) == 0 and sac.num_augmented(8, 1.0) == 8
+  assert losses.num_augmented(256, 0.9) == 230
+  assert losses.num_augmented(100, 0.29) == 29
+  assert losses.num_augmented(8, 0.0) == 0 and losses.num_augmented(8, 1.0) == 8
 
 
 @pytest.mark.parametrize("beta", [0.0, 0.3, 0.9, 1.0])
 def test_beta_mixes_exactly_the_first_rows(batch, beta):
   n = math.floor(beta * BATCH)
   invert = lambda key, images: jax.tree_util.tree_map(lambda x: 255 - x, images)
-  mixed, z_obs = sac.augment_and_mix(jax.random.key(0), batch, invert, beta)
+  mixed, z_obs = losses.augment_and_mix(jax.random.key(0), batch, invert, beta)
   np.testing.assert_array_equal(z_obs, 255 - np.asarray(batch.obs))
   for got, raw in ((mixed.obs, batch.obs), (mixed.next_obs, batch.next_obs)):
     got, raw = np.asarray(got), np.asarray(raw)
@@ -225,7 +226,7 @@ def test_beta_mixes_exactly_the_first_rows(batch, beta):
 
   # A registered augmentation: "window" zeroes a border, drawn once per sample
   # for o and o′ alike.
-  mixed, _ = sac.augment_and_mix(jax.random.key(1), batch, augment.get("window"), beta)
+  mixed, _ = losses.augment_and_mix(jax.random.key(1), batch, augment.get("window"), beta)
   obs, next_obs = np.asarray(mixed.obs), np.asarray(mixed.next_obs)
   changed = np.any(obs != np.asarray(batch.obs), axis=(1, 2, 3))
   np.testing.assert_array_equal(changed, np.arange(BATCH) < n)
@@ -234,10 +235,10 @@ def test_beta_mixes_exactly_the_first_rows(batch, beta):
 
 def _lam_grad(agent, batch, aug, key):
   """Gradient w.r.t. the encoder of the λ term as `critic_loss` computes it."""
-  mixed, z_obs = sac.augment_and_mix(key, batch, aug, CONFIG.beta)
+  mixed, z_obs = losses.augment_and_mix(key, batch, aug, CONFIG.beta)
   def lam_term(encoder_params):
     params = {"encoder": encoder_params, "critic": agent.params["critic"]}
-    return sac.critic_loss(params, agent, batch, mixed, z_obs, key, CONFIG)[1]["lam_loss"]
+    return losses.critic_loss(params, agent, batch, mixed, z_obs, key, CONFIG)[1]["lam_loss"]
   return jax.grad(lam_term)(agent.params["encoder"]), z_obs
 
 
@@ -268,12 +269,12 @@ def test_actor_loss_gradient_never_reaches_the_encoder(agent, batch):
   def loss_of(encoder_params, log_alpha):
     other = agent.replace(params={**agent.params, "encoder": encoder_params},
                           log_alpha=log_alpha)
-    return sac.actor_loss(agent.params["actor"], other, batch.obs, jax.random.key(4))[0]
+    return losses.actor_loss(agent.params["actor"], other, batch.obs, jax.random.key(4))[0]
   grads = jax.grad(loss_of, argnums=(0, 1))(agent.params["encoder"], agent.log_alpha)
   for leaf in jax.tree_util.tree_leaves(grads):  # features and α are constants
     assert not np.any(np.asarray(leaf))
   # ... while the actor's own gradient is not zero.
-  actor_grad = jax.grad(lambda p: sac.actor_loss(p, agent, batch.obs,
+  actor_grad = jax.grad(lambda p: losses.actor_loss(p, agent, batch.obs,
                                                  jax.random.key(4))[0])(agent.params["actor"])
   assert any(np.any(np.asarray(g)) for g in jax.tree_util.tree_leaves(actor_grad))
 

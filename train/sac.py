@@ -1,278 +1,47 @@
-"""SAC+AUG, the DMCR paper's learner (Sec. 3.2, appendix, Table 6), as pure JAX functions;
-with `SACConfig.algo`, also its baselines CURL and SAC+AE on the same SAC.
-
-One immutable `AgentState`; `update` is pure and jittable, with ``update_actor``
-static, so `jax.vmap` over K agents and `jax.lax.scan` over `update_pair` (a
-critic-only update, then a full one: the paper's "actor and target updates every
-2 steps", a fixed part of the algorithm here) stay cheap. The losses take uint8
-observations; how the encoder computes on them is its own affair
-(`dmcr_jax.train.networks.Encoder`). The losses, for a batch of B transitions (o, a, r, d, o′):
-
-- β mixing (paper Sec. 3.2): z is the augmentation (`dmcr_jax.augment.get(aug)`,
-  one draw per sample shared by o, o′ and the frames of the stack). The first
-  n = ⌊β·B⌋ rows of o and o′ are replaced by z(o), z(o′); the rest stay as they are.
-  This mixed batch (ô, a, r, d, ô′) serves the critic and the actor.
-- Critic (paper eq. for L_critic, both heads, sum of their mean squared errors):
-  y = sg(r + γ·d·(min_i Q′_i(e′(ô′), a′) − α·log π(a′|sg e(ô′)))), a′ ~ π(·|sg e(ô′)),
-  L_critic = mean_b (Q_1(e(ô), a) − y)² + mean_b (Q_2(e(ô), a) − y)²,
-  with e, Q the online encoder and critic, e′, Q′ their targets, α = exp(log α).
-- Encoder (paper eq. for L_encoder): L_encoder = L_critic + L_λ,
-  L_λ = λ · mean_b Σ_f (sg(e(o_b)) − e(z(o_b)))_f², over all B rows, gradient
-  only through the augmented pass e(z(o)) as the paper's text says. (DESIGN.md
-  and the issue put the stop-gradient on the other side by mistake; we follow the
-  paper.) The encoder and critic take one Adam step on L_encoder; no other loss
-  reaches the encoder.
-- Actor (paper eq. for L_actor): ã ~ π(·|sg e(ô)) reparameterised,
-  L_actor = mean_b (sg(α)·log π(ã|·) − min_i Q_i(sg e(ô), ã)); only the actor's
-  parameters move.
-- Temperature: L_α = mean_b (−α·(sg(log π(ã|·)) + H̄)), H̄ = −|A| by default,
-  optimised over log α.
-- Targets (Polyak): e′ ← (1 − τ_e)·e′ + τ_e·e with τ_e = .05, Q′ ← (1 − τ_Q)·Q′ +
-  τ_Q·Q with τ_Q = .01, after every actor update.
-
-In an update with ``update_actor=True`` the critic steps first; the actor then uses
-the updated encoder and critic (as SAC-AE, CURL and DrQ do), then α, then targets.
-
-CURL (``algo="curl"``, `dmcr_jax.train.curl`): instead of β mixing, every row of o and o′ is
-a random crop of the larger rendered observation (anchor, o′), the SAC losses
-above run on them (λ = 0), and after the targets one more Adam step on the
-encoder and the bilinear W minimises InfoNCE between the anchors (online
-encoder) and independent positive crops (target encoder, no gradient). SAC+AE
-(``algo="sac_ae"``, `dmcr_jax.train.sac_ae`): the SAC losses on the (un-augmented by
-default) batch, then one Adam step on the encoder and the decoder on the
-reconstruction loss. Both auxiliary steps run every update, as in the original
-code, with their own Adam states (`aux_optimizer`).
+"""SAC+AUG, the DMCR paper's learner (Sec. 3.2, appendix, Table 6), as pure JAX
+functions; with `SACConfig.algo` (`dmcr_jax.train.sac_config`, re-exported here),
+also its baselines CURL and SAC+AE on the same SAC. One immutable `AgentState`
+(parameters, targets, log α, Adam states); `init_agent`; `act`; the optimizers;
+and `update`, pure and jittable with ``update_actor`` static, which takes one Adam
+step on each loss of `dmcr_jax.train.losses` (whose docstring gives them): the
+encoder and critic on L_encoder = L_critic + L_λ first, then, with
+``update_actor``, the actor on L_actor with the updated encoder and critic (as
+SAC-AE, CURL and DrQ do), then log α on L_α, then the Polyak targets.
+`update_pair` is a critic-only update then a full one, the paper's "actor and
+target updates every 2 steps" (a fixed part of the algorithm here), so `jax.vmap`
+over K agents and `jax.lax.scan` over pairs stay cheap. CURL (``algo="curl"``,
+`dmcr_jax.train.curl`): instead of β mixing, every row of o and o′ is a random
+crop of the larger rendered observation (anchor, o′), the SAC losses run on them
+(λ = 0), and after the targets one more Adam step on the encoder and the bilinear
+W minimises InfoNCE between the anchors (online encoder) and independent positive
+crops (target encoder, no gradient). SAC+AE (``algo="sac_ae"``,
+`dmcr_jax.train.sac_ae`): the SAC losses on the (un-augmented by default) batch,
+then one Adam step on the encoder and the decoder on the reconstruction loss.
+Both auxiliary steps run every update, as in the original code, with their own
+Adam states (`aux_optimizer`).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import flax.struct
 import jax
 import jax.numpy as jnp
 import optax
 
-from dmcr_jax import augment
-from dmcr_jax.train import curl, sac_ae
-from dmcr_jax.train.networks import (LOG_STD_MAX, LOG_STD_MIN, Actor, Critic, Decoder, Encoder,
-                                     encoder_sides)
+from dmcr_jax.train import curl, losses, sac_ae
+from dmcr_jax.train.losses import Metrics, Params
+from dmcr_jax.train.networks import Actor, Critic, Decoder, Encoder, encoder_sides
 from dmcr_jax.train.replay import Batch  # what `replay.sample` returns and `update` consumes
+from dmcr_jax.train.sac_config import (  # noqa: F401 (re-exported: sac.SACConfig, sac.ALGOS, …)
+    ALGO_DEFAULTS, ALGOS, COMPUTE_DTYPES, DROPPED_FIELDS, SACConfig, is_int)
 
-Params = Any
-Metrics = dict[str, jax.Array]
-
-COMPUTE_DTYPES = ("float32", "bfloat16")
-"""What `SACConfig.compute_dtype` accepts."""
-
-ALGOS = ("sac_aug", "curl", "sac_ae")
-"""What `SACConfig.algo` accepts: the paper's SAC+AUG, CURL and SAC+AE."""
 AUX_TASKS = {"curl": curl, "sac_ae": sac_ae}
 """The auxiliary task of each learner that has one: a module with `PARTNER`,
 `init_partner`, `optimizer` and `aux_loss(aux_params, agent, obs, aux_input, key,
 config)`."""
-
-ALGO_DEFAULTS = {
-    "sac_aug": dict(batch_size=256, aug="drq", beta=0.9, lam=1e-5),
-    "curl": dict(batch_size=256, aug="none", beta=1.0, lam=0.0),
-    "sac_ae": dict(batch_size=128, aug="none", beta=1.0, lam=0.0),
-}
-"""What a `SACConfig` field left as None becomes, per algorithm (paper Table 6:
-batch 128 for SAC+AE; CURL and SAC+AE train without `dmcr_jax.augment`)."""
-
-
-# --------------------------------------------------------------------------- #
-# Configuration.
-# --------------------------------------------------------------------------- #
-
-
-def _is_int(x) -> bool:
-  return isinstance(x, int) and not isinstance(x, bool)
-
-
-def _is_real(x) -> bool:
-  return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
-
-
-@dataclasses.dataclass(frozen=True)
-class SACConfig:
-  """Learner hyperparameters; defaults are the paper's Table 6 (and Sec. 3.2).
-
-  Fields given as None take the algorithm's value from `ALGO_DEFAULTS`.
-
-  Attributes:
-    algo: "sac_aug" (the paper's SAC+AUG, default), "curl" (SAC with CURL's
-      contrastive loss, `dmcr_jax.train.curl`) or "sac_ae" (SAC with SAC+AE's decoder,
-      `dmcr_jax.train.sac_ae`).
-    batch_size: transitions per update (256; SAC+AE 128).
-    gamma: discount factor (.99).
-    critic_lr: Adam learning rate of the critic heads (1e-3).
-    actor_lr: Adam learning rate of the actor (1e-3).
-    encoder_lr: Adam learning rate of the encoder (1e-3).
-    alpha_lr: Adam learning rate of log α (1e-4).
-    init_alpha: initial temperature α (.1).
-    target_entropy: H̄ of the temperature loss; None means −|A| (Table 6).
-    encoder_tau: Polyak rate of the target encoder (.05).
-    critic_tau: Polyak rate of the target critic (.01).
-    beta: fraction of each batch that is augmented (Sec. 3.2: .9; 1 for CURL
-      and SAC+AE, which augment every row when they augment).
-    lam: weight λ of the feature-matching term (Sec. 3.2: 1e-5; 0 for CURL and
-      SAC+AE).
-    aug: augmentation name, any name `dmcr_jax.augment.get` accepts ("drq";
-      "none" for CURL, whose random crops are part of the algorithm, and for
-      SAC+AE, which the paper trains without augmentation); or
-      several separated by commas ("drq,cj+drq"): then each agent uses the one
-      its `AgentState.aug_index` picks (K agents with different augmentations
-      vmap together; see `aug_names`).
-    feature_dim: encoder output size (50).
-    hidden_dim: width of the actor's and critics' hidden layers (1024).
-    conv_channels: filters of each convolution (32).
-    log_std_min: lower end of the actor's log-std range (−10).
-    log_std_max: upper end of the actor's log-std range (2).
-    compute_dtype: "float32" (default) or "bfloat16", the compute dtype of the
-      networks' convolutions and dense layers (parameters, optimizer states,
-      losses and the policy's log-densities stay float32).
-    curl_crop: CURL's crop side, the encoder's input (84); observations are
-      rendered larger (`TrainConfig.image_size`, 100 for CURL).
-    decoder_latent_lambda: SAC+AE's weight λ_z of the latent L2 penalty (1e-6).
-    decoder_weight_lambda: SAC+AE's decoder weight decay λ_w (1e-7).
-    decoder_bits: bits per value of SAC+AE's reconstruction target (5).
-
-  The actor, α and the targets update every second critic update (Table 6), as
-  `update_pair` runs them.
-  """
-  algo: str = "sac_aug"
-  batch_size: int | None = None
-  gamma: float = 0.99
-  critic_lr: float = 1e-3
-  actor_lr: float = 1e-3
-  encoder_lr: float = 1e-3
-  alpha_lr: float = 1e-4
-  init_alpha: float = 0.1
-  target_entropy: float | None = None
-  encoder_tau: float = 0.05
-  critic_tau: float = 0.01
-  beta: float | None = None
-  lam: float | None = None
-  aug: str | None = None
-  feature_dim: int = 50
-  hidden_dim: int = 1024
-  conv_channels: int = 32
-  log_std_min: float = LOG_STD_MIN
-  log_std_max: float = LOG_STD_MAX
-  compute_dtype: str = "float32"
-  curl_crop: int = 84
-  decoder_latent_lambda: float = 1e-6
-  decoder_weight_lambda: float = 1e-7
-  decoder_bits: int = 5
-
-  def __post_init__(self):
-    def fail(field, value, want):
-      raise ValueError(f"SACConfig.{field} must be {want}, got {value!r}")
-
-    if self.algo not in ALGOS:
-      fail("algo", self.algo, f"one of {', '.join(ALGOS)}")
-    for field, value in ALGO_DEFAULTS[self.algo].items():
-      if getattr(self, field) is None:
-        object.__setattr__(self, field, value)
-
-    for field in ("batch_size", "feature_dim", "hidden_dim", "conv_channels", "curl_crop"):
-      value = getattr(self, field)
-      if not _is_int(value) or value < 1:
-        fail(field, value, "a positive int")
-    for field in ("critic_lr", "actor_lr", "encoder_lr", "alpha_lr", "init_alpha"):
-      value = getattr(self, field)
-      if not _is_real(value) or value <= 0:
-        fail(field, value, "a positive finite number")
-    for field in ("encoder_tau", "critic_tau"):
-      value = getattr(self, field)
-      if not _is_real(value) or not 0 < value <= 1:
-        fail(field, value, "in (0, 1]")
-    for field in ("gamma", "beta"):
-      value = getattr(self, field)
-      if not _is_real(value) or not 0 <= value <= 1:
-        fail(field, value, "in [0, 1]")
-    if not _is_real(self.lam) or self.lam < 0:
-      fail("lam", self.lam, "a finite number ≥ 0")
-    if self.target_entropy is not None and not _is_real(self.target_entropy):
-      fail("target_entropy", self.target_entropy, "None or a finite number")
-    if not (_is_real(self.log_std_min) and _is_real(self.log_std_max)
-            and self.log_std_min < self.log_std_max):
-      raise ValueError(f"SACConfig needs finite log_std_min < log_std_max, got "
-                       f"({self.log_std_min!r}, {self.log_std_max!r})")
-    if not isinstance(self.aug, str):
-      fail("aug", self.aug, "an augmentation name (str)")
-    names = self.aug_names
-    if len(set(names)) != len(names):
-      fail("aug", self.aug, "distinct comma-separated augmentation names")
-    for name in names:
-      try:
-        augment.get(name)
-      except ValueError as e:
-        raise ValueError(f"SACConfig.aug: {e}") from None
-    if self.compute_dtype not in COMPUTE_DTYPES:
-      fail("compute_dtype", self.compute_dtype, f"one of {', '.join(COMPUTE_DTYPES)}")
-    for field in ("decoder_latent_lambda", "decoder_weight_lambda"):
-      value = getattr(self, field)
-      if not _is_real(value) or value < 0:
-        fail(field, value, "a finite number ≥ 0")
-    if not _is_int(self.decoder_bits) or not 1 <= self.decoder_bits <= 8:
-      fail("decoder_bits", self.decoder_bits, "an int in 1 … 8")
-    if self.algo == "curl" and (self.aug != "none" or self.beta != 1 or self.lam != 0):
-      raise ValueError(
-          "SACConfig(algo='curl'): CURL crops every row itself (observations rendered "
-          "larger, random crops of curl_crop), so aug, beta and lam do not apply; got "
-          f"aug={self.aug!r}, beta={self.beta!r}, lam={self.lam!r} (leave them unset)")
-    if self.lam > 0 and self.aug_names == ("none",):
-      raise ValueError(f"SACConfig.lam = {self.lam!r} needs an augmentation (with "
-                       "aug='none' the λ term is identically 0); set lam=0 or an aug")
-
-  @property
-  def aug_names(self) -> tuple[str, ...]:
-    """The augmentation names of `aug` ("drq,cj+drq" → ("drq", "cj+drq"))."""
-    return tuple(name.strip() for name in self.aug.split(","))
-
-  def entropy_target(self, action_size: int) -> float:
-    """H̄ for the temperature loss: `target_entropy`, or −action_size if None.
-
-    Args:
-      action_size: |A|.
-
-    Returns:
-      The target entropy as a Python float.
-    """
-    if self.target_entropy is None:
-      return -float(action_size)
-    return float(self.target_entropy)
-
-  @classmethod
-  def from_dict(cls, fields: dict[str, Any]) -> SACConfig:
-    """The config `dataclasses.asdict` gave `fields` (a run's config.json).
-
-    The names of `DROPPED_FIELDS` are dropped if they hold a value the learner
-    computes.
-
-    Raises:
-      ValueError: for a dropped field with another value; TypeError for an
-        unknown field.
-    """
-    fields = dict(fields)
-    for name, only in DROPPED_FIELDS.items():
-      if name in fields:
-        value = fields.pop(name)
-        if only is not None and value != only:
-          raise ValueError(f"SACConfig.{name} = {value!r} is not supported: the learner "
-                           f"runs {name} = {only!r} only")
-    return cls(**fields)
-
-
-DROPPED_FIELDS = {"stage_inputs": None, "update_delay": 2}
-"""Names a run's config.json may hold that are not `SACConfig` fields, which
-`SACConfig.from_dict` drops: name → the only value it accepts (None: any).
-`stage_inputs`: any value, the update is the same; `update_delay`: 2, the schedule
-of `update_pair`."""
 
 
 # --------------------------------------------------------------------------- #
@@ -416,7 +185,7 @@ def init_agent(key: jax.Array, obs_shape: tuple[int, int, int], action_size: int
     ValueError: for a bad `obs_shape` or `action_size`.
   """
   obs_shape = tuple(obs_shape)
-  if (len(obs_shape) != 3 or not all(_is_int(d) and d > 0 for d in obs_shape)
+  if (len(obs_shape) != 3 or not all(is_int(d) and d > 0 for d in obs_shape)
       or obs_shape[2] % 3):
     raise ValueError(f"obs_shape must be (H, W, 3·stack), got {obs_shape}")
   seen = min(obs_shape[:2])
@@ -431,7 +200,7 @@ def init_agent(key: jax.Array, obs_shape: tuple[int, int, int], action_size: int
                      f"3×3 VALID convolutions (need H, W ≥ 15)")
   if config.algo == "sac_ae" and obs_shape[0] != obs_shape[1]:
     raise ValueError(f"SAC+AE's decoder reconstructs square images, got {obs_shape}")
-  if not _is_int(action_size) or action_size < 1:
+  if not is_int(action_size) or action_size < 1:
     raise ValueError(f"action_size must be a positive int, got {action_size!r}")
   networks = make_networks(action_size, config, obs_shape)
   k_encoder, k_actor, k_critic = jax.random.split(key, 3)
@@ -485,213 +254,6 @@ def act(agent: AgentState, obs: jax.Array, key: jax.Array,
 
 
 # --------------------------------------------------------------------------- #
-# Augmentation and β mixing.
-# --------------------------------------------------------------------------- #
-
-
-def num_augmented(batch_size: int, beta: float) -> int:
-  """n = ⌊β·B⌋, the number of leading rows of a batch that are augmented.
-
-  Args:
-    batch_size: B.
-    beta: β in [0, 1].
-
-  Returns:
-    A Python int in [0, B] (a tiny tolerance keeps e.g. ⌊.29·100⌋ = 29).
-  """
-  return min(batch_size, max(0, math.floor(beta * batch_size + 1e-9)))
-
-
-def agent_augmentation(agent: AgentState, config: SACConfig):
-  """The augmentation `agent` trains with: ``aug(key, tree) -> tree``.
-
-  With one name in `config.aug` that augmentation; with several, a
-  `jax.lax.switch` on `agent.aug_index` (under vmap over agents with different
-  indices every listed augmentation is computed and the agent's selected).
-
-  Args:
-    agent: the agent (its `aug_index`).
-    config: the hyperparameters (`aug`).
-
-  Returns:
-    A function like `dmcr_jax.augment.get`'s.
-  """
-  fns = [augment.get(name) for name in config.aug_names]
-  if len(fns) == 1:
-    return fns[0]
-  index = jnp.clip(agent.aug_index, 0, len(fns) - 1)
-  return lambda key, tree: jax.lax.switch(index, fns, key, tree)
-
-
-def augment_and_mix(key: jax.Array, batch: Batch, aug, beta: float
-                    ) -> tuple[Batch, jax.Array]:
-  """Augments o and o′ with one draw per sample and mixes the first ⌊β·B⌋ rows in.
-
-  Args:
-    key: a `jax.random` key for the augmentation.
-    batch: the batch from the replay buffer.
-    aug: ``aug(key, (obs, next_obs)) -> (z_obs, z_next_obs)``, e.g.
-      ``dmcr_jax.augment.get("drq")``; it must give a sample's o and o′ the same
-      draw (the augment module does).
-    beta: β in [0, 1].
-
-  Returns:
-    (mixed, z_obs): `batch` whose obs and next_obs have their first ⌊β·B⌋ rows
-    replaced by the augmented ones, and z(o) for all B rows (for the λ term).
-  """
-  z_obs, z_next_obs = aug(key, (batch.obs, batch.next_obs))
-  n = num_augmented(batch.obs.shape[0], beta)
-  mix = lambda z, x: jnp.concatenate([z[:n], x[n:]], axis=0)
-  return batch._replace(obs=mix(z_obs, batch.obs),
-                        next_obs=mix(z_next_obs, batch.next_obs)), z_obs
-
-
-# --------------------------------------------------------------------------- #
-# Losses.
-# --------------------------------------------------------------------------- #
-
-
-def td_target(agent: AgentState, next_obs: jax.Array, reward: jax.Array,
-              discount: jax.Array, key: jax.Array, config: SACConfig) -> jax.Array:
-  """y = r + γ·d·(min_i Q′_i(e′(o′), a′) − α·log π(a′|sg e(o′))), a′ ~ π(·|sg e(o′)).
-
-  a′ is drawn by the current actor on the online encoder's features of o′; the
-  target encoder and target critic give Q′. No gradient flows through y.
-
-  Args:
-    agent: the agent (online and target parameters, log α).
-    next_obs: uint8 (B, H, W, C), o′ (already mixed).
-    reward: (B,).
-    discount: (B,).
-    key: a `jax.random` key for a′.
-    config: the hyperparameters (γ).
-
-  Returns:
-    float32 (B,).
-  """
-  nets, params, targets = agent.networks, agent.params, agent.target_params
-  features = nets.encoder.apply(params["encoder"], next_obs)
-  next_action, next_log_prob = nets.actor.apply(params["actor"], features, key,
-                                                method=Actor.sample)
-  target_features = nets.encoder.apply(targets["encoder"], next_obs)
-  q1, q2 = nets.critic.apply(targets["critic"], target_features, next_action)
-  alpha = jnp.exp(agent.log_alpha)
-  soft_value = jnp.minimum(q1, q2) - alpha * next_log_prob
-  return jax.lax.stop_gradient(reward + config.gamma * discount * soft_value)
-
-
-def critic_loss(critic_params: Params, agent: AgentState, batch: Batch, mixed: Batch,
-                z_obs: jax.Array, key: jax.Array, config: SACConfig
-                ) -> tuple[jax.Array, Metrics]:
-  """L_encoder = L_critic + L_λ, a function of ``{"encoder", "critic"}`` (module doc).
-
-  L_critic = mean_b (Q_1 − y)² + mean_b (Q_2 − y)² on the mixed batch;
-  L_λ = λ · mean_b Σ_f (sg(e(o_b)) − e(z(o_b)))_f² over all B rows, with the
-  gradient only through e(z(o)) (paper Sec. 3.2). The encoder pass on the mixed
-  batch already holds e(z(o)) for rows < n and e(o) for rows ≥ n, so only the
-  missing rows are encoded again.
-
-  Args:
-    critic_params: ``{"encoder": …, "critic": …}``, the differentiated parameters.
-    agent: the agent (targets, actor, log α; its encoder/critic are not used here
-      except for drawing a′ in `td_target`).
-    batch: the un-augmented batch.
-    mixed: `augment_and_mix`'s mixed batch for `batch`.
-    z_obs: `augment_and_mix`'s z(o), all B rows.
-    key: a `jax.random` key for a′ in the target.
-    config: the hyperparameters (β, λ, γ).
-
-  Returns:
-    (L_encoder, metrics with "critic_loss" (L_critic), "lam_loss" (L_λ) and "q"
-    (mean of both heads' Q on the batch)).
-  """
-  encoder, critic = agent.networks.encoder, agent.networks.critic
-  size = batch.obs.shape[0]
-  n = num_augmented(size, config.beta)
-  y = td_target(agent, mixed.next_obs, mixed.reward, mixed.discount, key, config)
-  if config.lam > 0:
-    # One pass with gradient over the mixed batch and the z(o) rows it lacks.
-    # (Empty pieces are left out statically: n is a Python int.)
-    cat = lambda parts: jnp.concatenate([x for x in parts if x.shape[0]], axis=0)
-    all_features = encoder.apply(critic_params["encoder"], cat([mixed.obs, z_obs[n:]]))
-    features = all_features[:size]
-    z_features = cat([all_features[:n], all_features[size:]])
-    # e(o) is a constant (the paper: "only let gradients flow through the
-    # e(z(o)) pass"; DESIGN.md's formula puts the sg on the wrong side).
-    frozen_encoder = jax.lax.stop_gradient(critic_params["encoder"])
-    clean_head = [encoder.apply(frozen_encoder, batch.obs[:n])] if n else []
-    clean = cat(clean_head + [features[n:]])
-    diff = jax.lax.stop_gradient(clean) - z_features
-    lam_loss = config.lam * jnp.mean(jnp.sum(jnp.square(diff), axis=-1))
-  else:
-    features = encoder.apply(critic_params["encoder"], mixed.obs)
-    lam_loss = jnp.zeros((), jnp.float32)
-  q1, q2 = critic.apply(critic_params["critic"], features, mixed.action)
-  td_loss = jnp.mean(jnp.square(q1 - y)) + jnp.mean(jnp.square(q2 - y))
-  metrics = {"critic_loss": td_loss, "lam_loss": lam_loss,
-             "q": 0.5 * (jnp.mean(q1) + jnp.mean(q2))}
-  return td_loss + lam_loss, metrics
-
-
-def actor_loss(actor_params: Params, agent: AgentState, obs: jax.Array,
-               key: jax.Array) -> tuple[jax.Array, jax.Array]:
-  """L_actor = mean_b (sg(α)·log π(ã|f) − min_i Q_i(f, ã)), f = sg(e(o)), ã ~ π(·|f).
-
-  Gradients reach only `actor_params`: the features and α are constants, and the
-  critic's parameters come from `agent` (not differentiated).
-
-  Args:
-    actor_params: the differentiated actor parameters.
-    agent: the agent (encoder, critic, log α).
-    obs: uint8 (B, H, W, C), the mixed observations.
-    key: a `jax.random` key for ã.
-
-  Returns:
-    (L_actor, log π(ã|f) of shape (B,)).
-  """
-  nets, params = agent.networks, agent.params
-  features = jax.lax.stop_gradient(nets.encoder.apply(params["encoder"], obs))
-  action, log_prob = nets.actor.apply(actor_params, features, key, method=Actor.sample)
-  q1, q2 = nets.critic.apply(params["critic"], features, action)
-  alpha = jax.lax.stop_gradient(jnp.exp(agent.log_alpha))
-  return jnp.mean(alpha * log_prob - jnp.minimum(q1, q2)), log_prob
-
-
-def alpha_loss(log_alpha: jax.Array, log_prob: jax.Array,
-               target_entropy: float) -> jax.Array:
-  """L_α = mean_b (−exp(log α)·(sg(log π_b) + H̄)), a function of log α.
-
-  Args:
-    log_alpha: scalar, the differentiated log temperature.
-    log_prob: (B,), log π of the actor's samples (treated as constants).
-    target_entropy: H̄.
-
-  Returns:
-    A scalar.
-  """
-  log_prob = jax.lax.stop_gradient(log_prob)
-  return jnp.mean(-jnp.exp(log_alpha) * (log_prob + target_entropy))
-
-
-def soft_update_targets(agent: AgentState, config: SACConfig) -> AgentState:
-  """Polyak averaging: θ′ ← (1 − τ)·θ′ + τ·θ, τ_e for the encoder, τ_Q for the critic.
-
-  Args:
-    agent: the agent.
-    config: the hyperparameters (`encoder_tau`, `critic_tau`).
-
-  Returns:
-    The agent with new `target_params`.
-  """
-  params, targets = agent.params, agent.target_params
-  return agent.replace(target_params={
-      "encoder": optax.incremental_update(params["encoder"], targets["encoder"],
-                                          config.encoder_tau),
-      "critic": optax.incremental_update(params["critic"], targets["critic"],
-                                         config.critic_tau)})
-
-
-# --------------------------------------------------------------------------- #
 # Updates.
 # --------------------------------------------------------------------------- #
 
@@ -726,8 +288,8 @@ def update(agent: AgentState, batch: Batch, key: jax.Array, config: SACConfig, *
   Augments and β-mixes the batch (CURL: crops it, `dmcr_jax.train.curl.crops`), takes one
   Adam step of the encoder and critic on L_encoder = L_critic + L_λ; with
   `update_actor`, then one actor step on L_actor (with the new encoder and
-  critic), one log α step on L_α, and the Polyak target updates (module
-  docstring); then, for CURL and SAC+AE, one step of their auxiliary loss on the
+  critic), one log α step on L_α, and the Polyak target updates
+  (`dmcr_jax.train.losses`); then, for CURL and SAC+AE, one step of their auxiliary loss on the
   encoder and W or the decoder (`aux_step`). The key is split the same way
   either way, so the critic step does not depend on `update_actor`.
 
@@ -752,12 +314,12 @@ def update(agent: AgentState, batch: Batch, key: jax.Array, config: SACConfig, *
                                             config.curl_crop)
     mixed, z_obs = batch._replace(obs=anchor, next_obs=next_obs), None
   else:
-    mixed, z_obs = augment_and_mix(aug_key, batch, agent_augmentation(agent, config),
-                                   config.beta)
+    mixed, z_obs = losses.augment_and_mix(
+        aug_key, batch, losses.agent_augmentation(agent, config), config.beta)
 
   critic_params = {"encoder": agent.params["encoder"],
                    "critic": agent.params["critic"]}
-  grads, metrics = jax.grad(critic_loss, has_aux=True)(
+  grads, metrics = jax.grad(losses.critic_loss, has_aux=True)(
       critic_params, agent, batch, mixed, z_obs, target_key, config)
   updates, critic_opt_state = critic_optimizer(config).update(
       grads, agent.critic_opt_state, critic_params)
@@ -767,22 +329,22 @@ def update(agent: AgentState, batch: Batch, key: jax.Array, config: SACConfig, *
 
   if update_actor:
     actor_params = agent.params["actor"]
-    (loss, log_prob), grads = jax.value_and_grad(actor_loss, has_aux=True)(
+    (loss, log_prob), grads = jax.value_and_grad(losses.actor_loss, has_aux=True)(
         actor_params, agent, mixed.obs, actor_key)
     updates, actor_opt_state = actor_optimizer(config).update(
         grads, agent.actor_opt_state, actor_params)
     actor_params = optax.apply_updates(actor_params, updates)
 
     target_entropy = config.entropy_target(agent.networks.actor.action_size)
-    temp_loss, grad = jax.value_and_grad(alpha_loss)(agent.log_alpha, log_prob,
-                                                     target_entropy)
+    temp_loss, grad = jax.value_and_grad(losses.alpha_loss)(agent.log_alpha, log_prob,
+                                                            target_entropy)
     updates, alpha_opt_state = alpha_optimizer(config).update(
         grad, agent.alpha_opt_state, agent.log_alpha)
     agent = agent.replace(params={**agent.params, "actor": actor_params},
                           actor_opt_state=actor_opt_state,
                           log_alpha=optax.apply_updates(agent.log_alpha, updates),
                           alpha_opt_state=alpha_opt_state)
-    agent = soft_update_targets(agent, config)
+    agent = losses.soft_update_targets(agent, config)
     metrics.update(actor_loss=loss, alpha_loss=temp_loss, entropy=-jnp.mean(log_prob))
   if config.algo != "sac_aug":
     aux_input = positive if config.algo == "curl" else mixed.obs
