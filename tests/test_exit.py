@@ -20,7 +20,9 @@ from dmcr_jax.visuals.render_pool import RenderPool
 pytestmark = pytest.mark.xdist_group("exit")
 
 # Every kind of env with workers, none closed: the pool env with physics workers,
-# gymnasium's and dm_env's single envs; then the script ends as argv[1] says.
+# gymnasium's and dm_env's single envs, reset (all compiled, all workers used) if
+# argv[2] says so, else left as made (the physics worker still compiling); then the
+# script ends as argv[1] says.
 CHILD = r"""
 import json, sys, time
 import gymnasium
@@ -30,7 +32,7 @@ small = dict(image_size=16, workers=1, quality="fast", physics_device="cpu")
 envs = [dmcr_jax.make("cartpole-balance", num_envs=2, physics_workers=1, **small),
         gymnasium.make("dmcr/cartpole-balance-v0", **small),
         dmcr_jax.DmEnv("cartpole-balance", **small)]
-for env in envs:
+for env in envs if sys.argv[2] == "reset" else ():
   env.reset()
 live = list(pool._LIVE)
 print(json.dumps({"pids": sorted(p for w in live for p in w.pids),
@@ -41,10 +43,11 @@ if sys.argv[1] == "raise":
 if sys.argv[1] == "wait":
   time.sleep(600)
 """
-# (how the script ends, the signal its process group gets, its exit status)
-ENDINGS = {"end": ("end", None, 0), "raise": ("raise", None, 1),
-           "sigint": ("wait", signal.SIGINT, -signal.SIGINT),
-           "sigterm": ("wait", signal.SIGTERM, 128 + signal.SIGTERM)}
+# (how the script ends, whether it resets its envs, the signal its process group
+# gets, its exit status); resetting costs each script a compilation, so two do.
+ENDINGS = {"end": ("end", "reset", None, 0), "raise": ("raise", "made", None, 1),
+           "sigint": ("wait", "made", signal.SIGINT, -signal.SIGINT),
+           "sigterm": ("wait", "reset", signal.SIGTERM, 128 + signal.SIGTERM)}
 START_S = 900   # building the envs on a busy 2-core machine
 EXIT_S = 20     # from the end of the script (or the signal) to the process's exit
 
@@ -60,9 +63,10 @@ def _dead(pid: int) -> bool:
 @pytest.fixture(scope="module")
 def children():
   """The four endings' scripts, started at once (they build their envs side by side)."""
-  procs = {name: subprocess.Popen([sys.executable, "-c", CHILD, arg], stdout=subprocess.PIPE,
-                                  stderr=subprocess.PIPE, text=True, start_new_session=True)
-           for name, (arg, _, _) in ENDINGS.items()}
+  procs = {name: subprocess.Popen([sys.executable, "-c", CHILD, end, use],
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                  start_new_session=True)
+           for name, (end, use, _, _) in ENDINGS.items()}
   yield procs
   for proc in procs.values():   # whatever a failed test left running
     if proc.poll() is None:
@@ -80,7 +84,7 @@ def _first_line(proc) -> str:
 
 @pytest.mark.parametrize("ending", list(ENDINGS))
 def test_a_process_with_open_envs_exits_promptly_and_leaves_nothing(children, ending):
-  _, sig, status = ENDINGS[ending]
+  _, _, sig, status = ENDINGS[ending]
   proc = children[ending]
   made = json.loads(_first_line(proc))
   assert made["kinds"] == ["physics", "render", "render", "render"]
