@@ -113,7 +113,10 @@ def _close_live() -> None:
   so it runs first)."""
   global _EXITING
   _EXITING = True
-  for pool in list(_LIVE):
+  pools = list(_LIVE)
+  for pool in pools:   # every worker stops at once, then each pool is closed
+    pool._stop_workers()
+  for pool in pools:
     try:
       pool.close()
     except Exception:  # noqa: BLE001 - the others still close
@@ -446,12 +449,7 @@ class WorkerPool:
     workers get `CLOSE_GRACE` seconds to stop, then are killed. A close that an
     exception (e.g. Ctrl-C) cut short is finished by the next, or at exit."""
     self._closed = True
-    for conn in self._conns:
-      if conn is not None:
-        try:
-          conn.send(("stop",))
-        except (OSError, ValueError):
-          pass
+    self._stop_workers()
     deadline = time.monotonic() + CLOSE_GRACE
     for proc in self._procs:
       if proc is not None:
@@ -474,6 +472,15 @@ class WorkerPool:
     on_close, self._on_close = self._on_close, None
     if on_close is not None:
       on_close()
+
+  def _stop_workers(self) -> None:
+    """Asks every worker to stop (they leave after their current call)."""
+    for conn in self._conns:
+      if conn is not None:
+        try:
+          conn.send(("stop",))
+        except (OSError, ValueError):
+          pass
 
   def __enter__(self):
     return self
