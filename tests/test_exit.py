@@ -82,6 +82,7 @@ def _first_line(proc) -> str:
   return line
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("ending", list(ENDINGS))
 def test_a_process_with_open_envs_exits_promptly_and_leaves_nothing(children, ending):
   _, _, sig, status = ENDINGS[ending]
@@ -123,6 +124,7 @@ def _inputs(rm, n):
   return rm.model.qpos0 + rng.uniform(-1, 1, (n, rm.model.nq)), rm.sample(np.arange(n) * 7)
 
 
+@pytest.mark.slow
 def test_a_stopped_render_worker_is_announced_and_replaced_with_the_same_pixels(capfd):
   timeout = 2.0
   with RenderPool("cartpole", max_batch=4, height=16, width=16, workers=2, quality="fast",
