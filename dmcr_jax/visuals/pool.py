@@ -463,7 +463,7 @@ class WorkerPool:
       try:
         shm.close()
       except BufferError:
-        pass  # a caller still holds a view (copy_obs=False); the name goes all the same
+        pass  # a buffer exported elsewhere keeps the mapping; the name goes all the same
       try:
         shm.unlink()
       except FileNotFoundError:
