@@ -12,7 +12,9 @@
 
 Both run a one-env `PixelVectorEnv` (`dmcr_jax.make`): the same physics, visual
 seeds, frame skip and render pool. `visual_seed` takes an int or a `SeedRange`
-(a new look every episode); other keywords go to `dmcr_jax.make`.
+(a new look every episode); other keywords go to `dmcr_jax.make`. `close()`
+stops the env's workers at once; an env never closed (gymnasium code rarely
+closes) is closed at interpreter exit, so the process still exits promptly.
 """
 
 from __future__ import annotations

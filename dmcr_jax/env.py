@@ -47,6 +47,16 @@ the envs on its own XLA:CPU (`dmcr_jax.physics_pool`): on a many-core host a sma
 batch steps several times faster than in one process; the results are again the
 same up to float32 rounding.
 
+Lifecycle: the first `reset` of an env of a new shape (task, sizes, devices)
+announces on stderr that its physics (and, with "jax", its renderer) compiles,
+and roughly how long that takes; later envs of the same shape compile nothing
+and say nothing. A render or physics worker that is unresponsive for
+`worker_timeout` seconds (default: `DMCR_WORKER_TIMEOUT`, else 10) is announced
+and replaced, and its slice done again (`visuals.pool`). `close()` frees the
+workers and shared memory at once and is recommended, not required: an env left
+open is closed at interpreter exit, also after an exception, Ctrl-C or SIGTERM.
+A closed env's `reset` and `step` raise RuntimeError.
+
 Auto-reset follows gymnasium's NEXT_STEP mode: the step that ends an episode
 returns its last observation, reward and `truncated=True`; the env's next step
 ignores its action and returns the new episode's first observation with reward
@@ -74,6 +84,7 @@ in the episode) and "episode_return", each with gymnasium's boolean mask
 from __future__ import annotations
 
 import functools
+import sys
 import time
 from typing import Any, Sequence
 
@@ -92,6 +103,7 @@ from dmcr_jax.visuals import render_model as rmod
 from dmcr_jax.visuals.factors import check_vary
 from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, EnvRanges, SeedBounds, SeedRange
 from dmcr_jax.visuals.params import check_seeds
+from dmcr_jax.visuals.pool import check_timeout, default_timeout
 from dmcr_jax.visuals.render_pool import (RenderPool, check_egl_devices, check_gl, default_gl,
                                           default_workers)
 
@@ -236,8 +248,12 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
   def __init__(self, task: str, num_envs: int, visual_seeds: Any, vary, frame_skip,
                frame_stack: int, image_size, camera, seed: int,
                solver_iterations: int | None, ls_iterations: int | None,
-               physics_device: str | None = None, physics_workers: int | None = None):
+               physics_device: str | None = None, physics_workers: int | None = None,
+               worker_timeout: float | None = None):
     self._physics_pool = None
+    self.closed = False
+    self.worker_timeout = (default_timeout() if worker_timeout is None
+                           else check_timeout("worker_timeout", worker_timeout))
     domain, _ = models.split_name(task)
     if physics_device not in PHYSICS_DEVICES:
       raise ValueError(f"physics_device must be None (JAX's default device) or 'cpu', "
@@ -283,7 +299,7 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     if self.physics_workers:
       if self._physics_pool is None:
         self._physics_pool = PhysicsPool(self.task, self.num_envs, self.frame_skip,
-                                         self.physics_workers,
+                                         self.physics_workers, timeout=self.worker_timeout,
                                          ranged=isinstance(seed_arg, SeedBounds))
       self._init, self._step = self._physics_pool.init, self._physics_pool.step
       self._seed_arg = seed_arg
@@ -319,6 +335,7 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     Raises:
       ValueError: bad seeds or factors (the env is left unchanged).
     """
+    self._check_open()
     vary = self.vary if vary is None else vary
     check_vary(self.domain, vary)
     seeds = _seed_source(visual_seeds, self.num_envs)
@@ -339,8 +356,9 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
 
     Raises:
       ValueError: the state's structure or shapes differ from the env's.
-      RuntimeError: before `reset`.
+      RuntimeError: before `reset`, or after `close`.
     """
+    self._check_open()
     if self._es is None:
       raise RuntimeError("call reset() before set_state()")
     want = jax.tree.structure(self._es)
@@ -364,7 +382,11 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
 
     Returns:
       (observations, info) for all N envs.
+
+    Raises:
+      RuntimeError: after `close`.
     """
+    self._check_open()
     if options:
       raise ValueError(f"{type(self).__name__}.reset takes no options, got {sorted(options)}")
     if seed is not None:
@@ -377,6 +399,7 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     if seed is None or np.ndim(seed) == 0:
       self._key, key = jax.random.split(self._key)
     self._pending = None
+    announce_compile(self)
     return self._reset(self._on_physics(key))
 
   def step(self, actions):
@@ -391,7 +414,7 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
 
     Raises:
       ValueError: wrong shape or non-finite actions (nothing is stepped).
-      RuntimeError: `step` before `reset`.
+      RuntimeError: `step` before `reset`, or after `close`.
     """
     self.step_async(actions)
     return self.step_wait()
@@ -402,8 +425,9 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
 
     Raises:
       ValueError: wrong shape or non-finite actions (nothing is stepped).
-      RuntimeError: before `reset`, or a step already pending.
+      RuntimeError: before `reset`, after `close`, or a step already pending.
     """
+    self._check_open()
     if self._es is None:
       raise RuntimeError("call reset() before step()")
     if self._pending is not None:
@@ -415,6 +439,7 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
 
   def step_wait(self):
     """Completes the step `step_async` began (as `step`'s returns)."""
+    self._check_open()
     if self._pending is None:
       raise RuntimeError("step_wait() without a pending step_async()")
     (t0, resetting, stepped), self._pending = self._pending, None
@@ -430,8 +455,17 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     return None if self._obs is None else np.array(self._obs[..., -3:])
 
   def close(self, **kwargs) -> None:
-    """Releases the renderer and the physics workers (idempotent)."""
+    """Releases the renderer and the physics workers (idempotent); `reset` and
+    `step` then raise. Optional: envs not closed are closed at interpreter exit."""
+    self.closed = True
     self._close_physics()
+    self._es = self._obs = self._pending = None
+
+  def _check_open(self) -> None:
+    """RuntimeError once the env is closed."""
+    if self.closed:
+      raise RuntimeError(f"this {type(self).__name__} is closed; make a new env with "
+                         "dmcr_jax.make to step again")
 
   def __enter__(self):
     return self
@@ -492,7 +526,8 @@ class PixelVectorEnv(_PixelEnvBase):
   `VectorEnv`).
 
   Build it with `dmcr_jax.make` (same arguments). Use as a context manager or
-  call `close()` to stop the render workers.
+  call `close()` to stop the render workers when done with it; an env left open
+  is closed at interpreter exit (`visuals.pool`).
   """
 
   timing_parts = TIMING_PARTS
@@ -504,20 +539,21 @@ class PixelVectorEnv(_PixelEnvBase):
                quality: str = "exact", gl: str | None = None, copy_obs: bool = True,
                egl_devices: Sequence[int] | None = None,
                solver_iterations: int | None = None, ls_iterations: int | None = None,
-               physics_device: str | None = None, physics_workers: int | None = None):
+               physics_device: str | None = None, physics_workers: int | None = None,
+               worker_timeout: float | None = None):
     self._pool = None
     if workers is not None:
       positive_int("workers", workers)
     check_egl_devices(egl_devices, check_gl(default_gl() if gl is None else gl))
     super().__init__(task, num_envs, visual_seeds, vary, frame_skip, frame_stack,
                      image_size, camera, seed, solver_iterations, ls_iterations,
-                     physics_device, physics_workers)
+                     physics_device, physics_workers, worker_timeout)
     n = self.num_envs
     self.copy_obs = bool(copy_obs)
     self._pool = RenderPool(task, max_batch=n, height=self.height, width=self.width,
                             camera=camera, workers=min(n, workers or default_workers()),
                             quality=quality, gl=gl, frame_stack=self.frame_stack,
-                            egl_devices=egl_devices)
+                            egl_devices=egl_devices, timeout=self.worker_timeout)
     self._use_seeds()
     self._looks = None
     self._look_seeds = None
@@ -625,10 +661,11 @@ class JaxPixelVectorEnv(_PixelEnvBase):
                reflection: bool = True, render_chunk: int | None = None,
                render_kernel: bool | None = False, obs_on_device: bool = False,
                solver_iterations: int | None = None, ls_iterations: int | None = None,
-               physics_device: str | None = None, physics_workers: int | None = None):
+               physics_device: str | None = None, physics_workers: int | None = None,
+               worker_timeout: float | None = None):
     super().__init__(task, num_envs, visual_seeds, vary, frame_skip, frame_stack,
                      image_size, camera, seed, solver_iterations, ls_iterations,
-                     physics_device, physics_workers)
+                     physics_device, physics_workers, worker_timeout)
     self._render_on = jax.devices()[0]
     if render_chunk is not None:
       render_chunk = positive_int("render_chunk", render_chunk)
@@ -660,6 +697,12 @@ class JaxPixelVectorEnv(_PixelEnvBase):
     self.timings["step"] += t1 - t0
     self.timings["transfer"] += time.perf_counter() - t1
     return obs, host
+
+  def close(self, **kwargs) -> None:
+    """Stops the physics workers, if any, and drops the device state (idempotent);
+    `reset` and `step` then raise."""
+    super().close()
+    self._ps = None
 
   @property
   def pixel_state(self) -> jax_env.PixelState | None:
@@ -706,6 +749,37 @@ class JaxPixelVectorEnv(_PixelEnvBase):
     host = jax.device_get(fields)
     self._obs = ps.obs if self.obs_on_device else to_host(ps.obs)
     return (self._obs, host) if reward is not None else (self._obs, self._info(host))
+
+
+_ANNOUNCED: set[tuple] = set()
+"""The env shapes whose first compilation this process has announced."""
+
+
+def announce_compile(env: _PixelEnvBase) -> None:
+  """Prints one line on stderr before the first `reset` of an env of a shape this
+  process has not built yet: what compiles (its `reset` and first `step`), for how
+  many envs, on which devices, and roughly how long it takes (JAX's persistent
+  compilation cache, where enabled, makes later processes faster)."""
+  jax_renderer = isinstance(env, JaxPixelVectorEnv)
+  options = tuple(sorted(env._options.items())) if jax_renderer else ()
+  shape = (type(env).__name__, env.task_name, env.num_envs, env.frame_skip, env.frame_stack,
+           env.height, env.width, env.physics_device, env.physics_workers, options)
+  if shape in _ANNOUNCED:
+    return
+  _ANNOUNCED.add(shape)
+  where = env._physics_on.platform
+  if env.physics_workers:
+    where += f", in {env.physics_workers} physics worker process(es)"
+  what = "physics"
+  if jax_renderer:
+    what = "physics and ray-cast renderer"
+    if env._render_on.platform != env._physics_on.platform:
+      where += f" (frames on {env._render_on.platform})"
+  took = ("several minutes (render_kernel=True)" if jax_renderer and env._options["render_kernel"]
+          else "~20-120 s" if jax_renderer else "~10-60 s")
+  print(f"dmcr_jax: compiling {env.task_name}'s {what} for {env.num_envs} envs on {where} "
+        f"(first reset and step); this takes {took} the first time", file=sys.stderr,
+        flush=True)
 
 
 def to_host(x: jax.Array) -> np.ndarray:
@@ -764,17 +838,24 @@ def make(task: str, num_envs: int = 1, visual_seeds: Any = 0,
       `physics_device` (None: JAX's default device; "cpu": the host CPU, see the
       module docstring; with renderer="jax" the frames are still rendered on
       the default device); `physics_workers` (None or 0: the physics in this
-      process; W ≥ 1: in W CPU worker processes, with `physics_device="cpu"`).
+      process; W ≥ 1: in W CPU worker processes, with `physics_device="cpu"`);
+      `worker_timeout` (seconds a busy render or physics worker may send no
+      heartbeat before it is announced on stderr and replaced, its slice redone;
+      None: the `DMCR_WORKER_TIMEOUT` environment variable, else 10).
 
   Returns:
     A `PixelVectorEnv` or a `JaxPixelVectorEnv` (gymnasium `VectorEnv`s); call
-    `reset()` first.
+    `reset()` first (its first call, and the first `step`, compile, announced
+    on stderr once per shape). `close()` when done is recommended (it frees the
+    workers and shared memory at once) but optional: an env left open is closed
+    at interpreter exit, also after an exception, Ctrl-C or SIGTERM.
 
   Raises:
     ValueError: unknown task, factor, camera, renderer, quality or GL backend (the
       message lists the valid ones), a factor that does not apply to the task's
       domain or an empty `vary`, num_envs or workers ≤ 0, a seed outside
-      [0, 2**32), a visual-seed count other than 1 or N, an option of the other
+      [0, 2**32), a worker_timeout that is not a number > 0, a visual-seed
+      count other than 1 or N, an option of the other
       renderer, a range straddling `TRAIN_SEEDS` and `TEST_SEEDS`, ranges mixed
       with fixed seeds.
   """

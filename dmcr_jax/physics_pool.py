@@ -31,6 +31,7 @@ can differ and, in chaotic stretches of an episode, grow
 
 from __future__ import annotations
 
+import functools
 import multiprocessing as mp
 import os
 import shutil
@@ -196,7 +197,8 @@ class PhysicsPool(OwnsWorkerPool):
     num_envs: N.
     frame_skip: control steps per agent step.
     workers: W ≥ 1 (at most N are used).
-    timeout: seconds a worker may take for one call before it is replaced.
+    timeout: seconds a busy worker may send no heartbeat before it is announced
+      and replaced (None: `visuals.pool.default_timeout()`, `DMCR_WORKER_TIMEOUT`).
     ranged: the seed argument's kind the workers compile for as they start
       (`SeedBounds` if True, else fixed seeds); the other kind compiles when
       first used.
@@ -212,7 +214,7 @@ class PhysicsPool(OwnsWorkerPool):
   """
 
   def __init__(self, task, num_envs: int, frame_skip: int, workers: int,
-               timeout: float = 120.0, ranged: bool = False):
+               timeout: float | None = None, ranged: bool = False):
     n = positive_int("num_envs", num_envs)
     workers = min(positive_int("physics workers", workers), n)
     self.num_envs = n
@@ -235,7 +237,10 @@ class PhysicsPool(OwnsWorkerPool):
           worker_args=[((b - a,), bool(ranged), compiled, w == 0)
                        for w, (a, b) in enumerate(slice_bounds(n, workers))],
           env={"JAX_PLATFORMS": "cpu", "XLA_PYTHON_CLIENT_PREALLOCATE": "false",
-               "JAX_COMPILATION_CACHE_DIR": cache})
+               "JAX_COMPILATION_CACHE_DIR": cache},
+          # also at exit if the pool is never closed (no reference to self: no cycle)
+          on_close=self._own_cache and functools.partial(shutil.rmtree, self._own_cache,
+                                                         ignore_errors=True))
     except BaseException:
       self._remove_own_cache()
       raise

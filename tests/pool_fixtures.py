@@ -5,7 +5,9 @@ import signal
 import time
 
 
-KILL, HANG, RAISE = 1, 2, 3
+KILL, HANG, RAISE, SLOW = 1, 2, 3, 4
+SLOW_S = 3.0
+"""Seconds a SLOW env takes (busy, but the worker's heartbeat goes on)."""
 
 
 class ToyRenderer:
@@ -29,6 +31,8 @@ class ToyRenderer:
           os.kill(os.getpid(), signal.SIGKILL)
         elif mode == HANG:
           time.sleep(3600)
+        elif mode == SLOW:
+          time.sleep(SLOW_S)
       if mode == RAISE:
         raise ValueError(f"bad env value {inputs['value'][i]}")
       out[i] = inputs["value"][i] + 1

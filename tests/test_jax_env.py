@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 import dmcr_jax
+from dmcr_jax import env as env_module
 from dmcr_jax import jax_env
 from dmcr_jax.visuals.levels import levels
 from dmcr_jax.train import loop, sac
@@ -188,6 +189,30 @@ def test_set_state_restarts_the_stacks_from_that_state(envs):
     np.testing.assert_array_equal(restarted[..., 3 * k:3 * k + 3], obs[..., -3:])
   with pytest.raises(ValueError, match="shaped like"):
     jenv.set_state(jax.tree.map(lambda x: x[:1], state))
+
+
+@pytest.mark.slow
+def test_first_compile_is_announced_once_and_a_closed_env_refuses_to_step(
+    envs, monkeypatch, capfd):
+  # Sized as `envs`, so nothing compiles again; both renderers.
+  monkeypatch.setattr(env_module, "_ANNOUNCED", set())
+  for renderer, what in (("jax", "physics and ray-cast renderer"), ("pool", "physics")):
+    for again in (False, True):
+      env = _make(renderer, **({"workers": 1} if renderer == "pool" else {}))
+      env.reset(seed=1)
+      env.step(np.zeros((N, 1), np.float32))
+      env.close()
+      env.close()   # idempotent
+      for call in (lambda: env.step(np.zeros((N, 1), np.float32)), env.reset,
+                   lambda: env.set_visuals(0)):
+        with pytest.raises(RuntimeError, match=f"this {type(env).__name__} is closed"):
+          call()
+      lines = [ln for ln in capfd.readouterr().err.splitlines() if "compiling" in ln]
+      if again:   # an env of a shape already announced
+        assert lines == []
+      else:
+        assert len(lines) == 1, lines
+        assert lines[0].startswith(f"dmcr_jax: compiling {TASK}'s {what} for {N} envs on cpu")
 
 
 @pytest.mark.parametrize("kwargs, match", [

@@ -1,5 +1,6 @@
 """WorkerPool: slices, shared memory, killed/hung/raising workers, clean shutdown."""
 
+import contextlib
 import os
 import signal
 import time
@@ -7,17 +8,18 @@ import time
 import numpy as np
 import pytest
 
-from dmcr_jax.visuals.pool import ArraySpec, WorkerError, WorkerPool
+from dmcr_jax.visuals.pool import (DEFAULT_TIMEOUT, ArraySpec, WorkerError, WorkerPool,
+                                   default_timeout)
 from tests import pool_fixtures as fx
 
 IN = {"value": ArraySpec((), "float64"), "mode": ArraySpec((), "int32")}
 OUT = ArraySpec((2, 3), "float32")
 
 
-def make_pool(tmp_path, workers=2, timeout=20.0, max_batch=64):
+def make_pool(tmp_path, workers=2, timeout=20.0, max_batch=64, **kwargs):
   marker = str(tmp_path / "fault")
   return WorkerPool(fx.ToyRenderer, (marker,), IN, OUT, max_batch=max_batch,
-                    workers=workers, timeout=timeout), marker
+                    workers=workers, timeout=timeout, **kwargs), marker
 
 
 def fill(pool, n, mode=None):
@@ -85,14 +87,64 @@ def test_workers_leave_sigint_and_sigterm_to_the_parent(tmp_path):
 
 
 @pytest.mark.slow
-def test_hung_worker_times_out_and_is_replaced(tmp_path):
-  with make_pool(tmp_path, workers=2, timeout=3.0)[0] as pool:
+def test_worker_busy_past_the_call_timeout_is_replaced(tmp_path, capfd):
+  # Its heartbeat goes on (the thread that sends it is not the one that hangs).
+  with make_pool(tmp_path, workers=2, call_timeout=3.0)[0] as pool:
     n = 8
     fill(pool, n)
     pool.inputs["mode"][1] = fx.HANG
     open(tmp_path / "fault", "w").close()
     np.testing.assert_array_equal(pool.run(n), expected(n))
     assert pool.restarts == 1
+  err = capfd.readouterr().err
+  assert "render worker 0 (pid " in err and "still busy after 3 s; replacing it" in err
+
+
+def test_stopped_worker_is_announced_and_replaced_after_the_timeout(tmp_path, capfd):
+  with make_pool(tmp_path, workers=2, timeout=1.0)[0] as pool:
+    n = 8
+    fill(pool, n)
+    pool.run(n)
+    victim = pool.pids[1]
+    os.kill(victim, signal.SIGSTOP)
+    try:
+      fill(pool, n)
+      t0 = time.monotonic()
+      np.testing.assert_array_equal(pool.run(n), expected(n))
+      took = time.monotonic() - t0
+    finally:
+      with contextlib.suppress(ProcessLookupError):   # the pool killed it already
+        os.kill(victim, signal.SIGKILL)
+    assert pool.restarts == 1 and victim not in pool.pids
+    assert 1.0 <= took < 10.0
+  assert f"render worker 1 (pid {victim}) unresponsive for 1 s; replacing it" in capfd.readouterr().err
+
+
+def test_slow_worker_that_keeps_its_heartbeat_is_not_replaced(tmp_path, capfd):
+  # A call longer than the timeout (a big slice, a first compilation) is no hang.
+  with make_pool(tmp_path, workers=2, timeout=1.0)[0] as pool:
+    n = 4
+    fill(pool, n)
+    pool.inputs["mode"][3] = fx.SLOW
+    open(tmp_path / "fault", "w").close()
+    t0 = time.monotonic()
+    np.testing.assert_array_equal(pool.run(n), expected(n))
+    assert time.monotonic() - t0 >= fx.SLOW_S
+    assert pool.restarts == 0
+  assert "unresponsive" not in capfd.readouterr().err
+
+
+def test_timeouts_are_checked(monkeypatch):
+  for bad in (0, -2.0, "x", True):
+    with pytest.raises(ValueError, match="timeout must be a number of seconds > 0"):
+      WorkerPool(fx.ToyRenderer, ("x",), IN, OUT, max_batch=1, workers=1, timeout=bad)
+  monkeypatch.setenv("DMCR_WORKER_TIMEOUT", "2.5")
+  assert default_timeout() == 2.5
+  monkeypatch.setenv("DMCR_WORKER_TIMEOUT", "0")
+  with pytest.raises(ValueError, match="DMCR_WORKER_TIMEOUT must be a number of seconds > 0"):
+    default_timeout()
+  monkeypatch.delenv("DMCR_WORKER_TIMEOUT")
+  assert default_timeout() == DEFAULT_TIMEOUT
 
 
 def test_worker_exception_surfaces_with_traceback(tmp_path):

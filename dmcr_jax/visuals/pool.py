@@ -8,12 +8,27 @@ Each worker builds its renderer once, from a picklable factory, in its own proce
 (and so its own GL context).
 
 Faults are handled per call: a worker that dies (e.g. SIGKILL) is restarted and
-its slice re-rendered; a worker that does not answer within `timeout` seconds is
-killed, replaced and its slice re-rendered; a Python exception inside a worker is
-raised in the caller as `WorkerError` carrying the worker's traceback. Since each
-slice is written whole by exactly one successful worker run, a call returns
-complete outputs with nothing lost or duplicated. `close()` (or leaving the
-`with` block) stops every worker and unlinks every shared-memory segment.
+its slice re-rendered; a worker that is unresponsive — sends no heartbeat for
+`timeout` seconds (stopped, frozen, or stuck holding Python's lock) or is still
+busy after `call_timeout` seconds — is announced on stderr, killed, replaced and
+its slice re-rendered; a Python exception inside a worker is raised in the caller
+as `WorkerError` carrying the worker's traceback. Since each slice is written
+whole by exactly one successful worker run, a call returns complete outputs with
+nothing lost or duplicated. A busy worker's heartbeat comes from a thread of its
+own every `heartbeat_interval(timeout)` seconds; `timeout` defaults to
+`default_timeout()` (`DMCR_WORKER_TIMEOUT`, else `DEFAULT_TIMEOUT`).
+
+Shutdown: `close()` (or leaving the `with` block) stops every worker and unlinks
+every shared-memory segment. A pool that is never closed is closed at
+interpreter exit (an `atexit` hook that runs before multiprocessing's own, which
+would otherwise wait forever for workers that ignore SIGTERM), so a script that
+ends, raises or is interrupted (Ctrl-C) without `close()` exits promptly and
+leaves no worker and no segment. A SIGTERM to the main process raises
+`SystemExit(143)` in its main thread (installed with the first pool, only where
+SIGTERM still has its default action), so `finally` blocks and the exit hook
+run; the main thread takes it once it is back in Python (a long native call,
+e.g. an XLA compilation, finishes first). Workers leave when their pipe closes,
+so a parent killed outright (SIGKILL) leaves no worker either.
 
 Protocol of a worker's renderer (built by `factory(*args)` in the worker):
 `renderer(inputs: dict[str, np.ndarray], out: np.ndarray) -> None` renders
@@ -31,18 +46,99 @@ so that the caller can work while the workers do.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import dataclasses
 import multiprocessing as mp
+import multiprocessing.util  # noqa: F401 - its exit hook must be registered before ours
 import os
 import sys
 import signal
+import threading
 import time
 import traceback
+import weakref
 from multiprocessing import connection, shared_memory
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
+
+DEFAULT_TIMEOUT = 10.0
+"""Seconds a busy worker may send no heartbeat before it is replaced (the default
+of `default_timeout()`)."""
+TIMEOUT_VARIABLE = "DMCR_WORKER_TIMEOUT"
+"""Environment variable that sets the default hung-worker timeout, in seconds."""
+DEFAULT_CALL_TIMEOUT = 300.0
+"""Seconds a worker may stay busy with one call, heartbeat or not, before it is
+replaced (a worker blocked in native code, e.g. a GL driver, still beats)."""
+CLOSE_GRACE = 2.0
+"""Seconds `close()` waits for the workers to stop before it kills them."""
+
+
+def check_timeout(name: str, value) -> float:
+  """`value` as a float number of seconds > 0, else ValueError naming `name`."""
+  try:
+    seconds = float(value)
+  except (TypeError, ValueError):
+    seconds = float("nan")
+  if isinstance(value, bool) or not seconds > 0 or seconds == float("inf"):
+    raise ValueError(f"{name} must be a number of seconds > 0, got {value!r}")
+  return seconds
+
+
+def default_timeout() -> float:
+  """The hung-worker timeout in seconds: `DMCR_WORKER_TIMEOUT` if set, else
+  `DEFAULT_TIMEOUT`; ValueError when the variable is not a number > 0."""
+  value = os.environ.get(TIMEOUT_VARIABLE)
+  return DEFAULT_TIMEOUT if value in (None, "") else check_timeout(TIMEOUT_VARIABLE, value)
+
+
+def heartbeat_interval(timeout: float) -> float:
+  """Seconds between a busy worker's heartbeats for a pool's `timeout`: five per
+  timeout, at most one a second."""
+  return min(1.0, timeout / 5)
+
+
+def _announce(message: str) -> None:
+  print(f"dmcr_jax: {message}", file=sys.stderr, flush=True)
+
+
+_LIVE: "weakref.WeakSet[WorkerPool]" = weakref.WeakSet()
+"""Every pool not yet closed, closed by `_close_live` at exit."""
+_EXITING = False
+
+
+def _close_live() -> None:
+  """Closes every live pool (the exit hook; registered after multiprocessing's,
+  so it runs first)."""
+  global _EXITING
+  _EXITING = True
+  pools = list(_LIVE)
+  for pool in pools:   # every worker stops at once, then each pool is closed
+    pool._stop_workers()
+  for pool in pools:
+    try:
+      pool.close()
+    except Exception:  # noqa: BLE001 - the others still close
+      pass
+
+
+atexit.register(_close_live)
+
+
+def _exit_on_sigterm(signum, frame) -> None:
+  """SIGTERM handler of a process with pools: `SystemExit(128 + SIGTERM)`, so
+  that `finally` blocks and `_close_live` run (nothing once exit has begun)."""
+  if not _EXITING:
+    raise SystemExit(128 + signal.SIGTERM)
+
+
+def _handle_sigterm() -> None:
+  """Installs `_exit_on_sigterm` where SIGTERM has its default action and this is
+  the main thread (a handler the program set is kept)."""
+  if (threading.current_thread() is threading.main_thread()
+      and signal.getsignal(signal.SIGTERM) == signal.SIG_DFL):
+    signal.signal(signal.SIGTERM, _exit_on_sigterm)
 
 
 class WorkerError(RuntimeError):
@@ -110,9 +206,41 @@ def _environ(env: Mapping[str, str]):
         os.environ[k] = v
 
 
+class _Replies:
+  """A worker's side of its pipe: replies from the main thread, and heartbeats
+  ("alive", call_id) from a thread of their own every `interval` seconds while a
+  call is in progress (one lock orders them: no heartbeat follows a call's reply)."""
+
+  def __init__(self, conn, interval: float):
+    self.conn, self.interval = conn, interval
+    self.lock = threading.Lock()
+    self.call = None
+    threading.Thread(target=self._beat, name="heartbeat", daemon=True).start()
+
+  def _beat(self) -> None:
+    while True:
+      time.sleep(self.interval)
+      with self.lock:
+        if self.call is not None:
+          try:
+            self.conn.send(("alive", self.call))
+          except OSError:
+            return
+
+  def begin(self, call_id: int) -> None:
+    with self.lock:
+      self.call = call_id
+
+  def send(self, msg) -> None:
+    with self.lock:
+      self.call = None
+      self.conn.send(msg)
+
+
 def _worker_main(conn, factory, factory_args, in_names, in_specs, out_names, out_spec,
-                 batch, env):
-  """Entry point of a worker process: build the renderer, then serve calls.
+                 batch, env, interval):
+  """Entry point of a worker process: build the renderer, then serve calls,
+  with heartbeats every `interval` seconds while busy (`_Replies`).
 
   Workers ignore SIGINT and SIGTERM: Ctrl-C and `timeout` signal the whole process
   group, and the parent must be the one that decides (e.g. checkpoint, then close
@@ -138,22 +266,27 @@ def _worker_main(conn, factory, factory_args, in_names, in_specs, out_names, out
   except BaseException:  # noqa: BLE001 - reported to the parent
     conn.send(("error", traceback.format_exc()))
     return
+  replies = _Replies(conn, interval)
   while True:
     try:
       msg = conn.recv()
-    except EOFError:
+    except (EOFError, OSError):
       break
     if msg[0] == "stop":
       break
     _, call_id, start, stop, cur = msg
+    replies.begin(call_id)
     try:
       args = [outs[cur][start:stop]]
       if len(outs) == 2:
         args.append(outs[1 - cur][start:stop])
       renderer({k: v[start:stop] for k, v in inputs.items()}, *args)
-      conn.send(("done", call_id))
+      replies.send(("done", call_id))
     except BaseException:  # noqa: BLE001 - reported to the parent
-      conn.send(("error", traceback.format_exc()))
+      try:
+        replies.send(("error", traceback.format_exc()))
+      except OSError:
+        break
   del inputs, outs
   for s in segments:
     s.close()
@@ -176,7 +309,10 @@ class WorkerPool:
     output: `ArraySpec` of one env's output.
     max_batch: the largest batch a call may pass.
     workers: number of processes (≥ 1).
-    timeout: seconds a worker may take for one slice before it is replaced.
+    timeout: seconds a busy worker may send no heartbeat before it is announced
+      and replaced (None: `default_timeout()`).
+    call_timeout: seconds a worker may stay busy with one call before it is
+      announced and replaced, heartbeat or not.
     start_timeout: seconds a worker may take to start (imports, GL context,
       building its renderer).
     max_retries: restarts per slice within one call before the call fails.
@@ -188,15 +324,19 @@ class WorkerPool:
     buffers: 1, or 2 for double-buffered outputs (see the module docstring).
     kind: what the workers do, for process names and error messages ("render",
       "physics").
+    on_close: called once by `close()` after the workers stopped (also at exit
+      for a pool never closed), e.g. to remove a folder the workers used.
   """
 
   def __init__(self, factory: Callable[..., Any], factory_args: Sequence[Any],
                inputs: Mapping[str, ArraySpec], output: ArraySpec, max_batch: int,
-               workers: int, timeout: float = 120.0, start_timeout: float = 600.0,
+               workers: int, timeout: float | None = None,
+               call_timeout: float = DEFAULT_CALL_TIMEOUT, start_timeout: float = 600.0,
                max_retries: int = 3,
                env: Mapping[str, str] | None = None, buffers: int = 1,
                kind: str = "render", worker_env: Sequence[Mapping[str, str]] = (),
-               worker_args: Sequence[Sequence[Any]] = ()):
+               worker_args: Sequence[Sequence[Any]] = (),
+               on_close: Callable[[], Any] | None = None):
     if int(workers) < 1:
       raise ValueError(f"workers must be >= 1, got {workers}")
     if int(max_batch) < 1:
@@ -211,7 +351,8 @@ class WorkerPool:
     self._out_spec = output
     self.max_batch = int(max_batch)
     self.num_workers = int(workers)
-    self.timeout = float(timeout)
+    self.timeout = default_timeout() if timeout is None else check_timeout("timeout", timeout)
+    self.call_timeout = check_timeout("call_timeout", call_timeout)
     self.start_timeout = float(start_timeout)
     self.max_retries = int(max_retries)
     self._env = dict(env or {})
@@ -226,6 +367,9 @@ class WorkerPool:
     self.kind = kind
     self.restarts = 0
     self._closed = False
+    self._on_close = on_close
+    _handle_sigterm()
+    _LIVE.add(self)
     try:
       self.inputs = {k: self._alloc(s) for k, s in self._in_specs.items()}
       self._in_names = {k: self._segments[i].name for i, k in enumerate(self._in_specs)}
@@ -257,7 +401,8 @@ class WorkerPool:
         args=(child, self._factory,
               self._factory_args + (self._worker_args[w] if self._worker_args else ()),
               self._in_names, self._in_specs,
-              self._out_names, self._out_spec, self.max_batch, env))
+              self._out_names, self._out_spec, self.max_batch, env,
+              heartbeat_interval(self.timeout)))
     with _main_module_hidden(), _environ(env):
       proc.start()
     child.close()
@@ -300,29 +445,42 @@ class WorkerPool:
     return [p.pid for p in self._procs if p is not None]
 
   def close(self) -> None:
-    """Stops every worker and unlinks every shared-memory segment (idempotent)."""
-    if self._closed:
-      return
+    """Stops every worker and unlinks every shared-memory segment (idempotent):
+    workers get `CLOSE_GRACE` seconds to stop, then are killed. A close that an
+    exception (e.g. Ctrl-C) cut short is finished by the next, or at exit."""
     self._closed = True
-    for w, conn in enumerate(self._conns):
-      if conn is not None:
-        try:
-          conn.send(("stop",))
-        except (OSError, BrokenPipeError):
-          pass
-    for w, proc in enumerate(self._procs):
+    self._stop_workers()
+    deadline = time.monotonic() + CLOSE_GRACE
+    for proc in self._procs:
       if proc is not None:
-        proc.join(2)
+        proc.join(max(0.0, deadline - time.monotonic()))
+    for w in range(self.num_workers):
       self._kill(w)
     self.inputs = {}
     self._outputs = []
-    for shm in self._segments:
+    while self._segments:
+      shm = self._segments.pop()
       try:
         shm.close()
+      except BufferError:
+        pass  # a buffer exported elsewhere keeps the mapping; the name goes all the same
+      try:
         shm.unlink()
       except FileNotFoundError:
         pass
-    self._segments = []
+    _LIVE.discard(self)
+    on_close, self._on_close = self._on_close, None
+    if on_close is not None:
+      on_close()
+
+  def _stop_workers(self) -> None:
+    """Asks every worker to stop (they leave after their current call)."""
+    for conn in self._conns:
+      if conn is not None:
+        try:
+          conn.send(("stop",))
+        except (OSError, ValueError):
+          pass
 
   def __enter__(self):
     return self
@@ -385,17 +543,24 @@ class WorkerPool:
       raise RuntimeError("wait() without a submitted call")
     (batch, pending), self._pending = self._pending, None
     tries = {w: 0 for w in pending}
-    deadline = {w: time.monotonic() + self.timeout for w in pending}
+    began = dict.fromkeys(pending, time.monotonic())   # the slice was (re)sent
+    beat = dict(began)                                 # the worker's last sign of life
     while pending:
       waitables = {self._conns[w]: w for w in pending}
       waitables.update({self._procs[w].sentinel: w for w in pending})
-      left = min(deadline[w] for w in pending) - time.monotonic()
-      ready = connection.wait(list(waitables), timeout=max(0.0, left))
+      due = min(min(beat[w] + self.timeout, began[w] + self.call_timeout) for w in pending)
+      ready = connection.wait(list(waitables), timeout=max(0.0, due - time.monotonic()))
       now = time.monotonic()
-      for w in [w for w in pending if deadline[w] <= now and
-                self._conns[w] not in ready and self._procs[w].sentinel not in ready]:
-        self._retry(w, pending, tries, "timed out")  # hung: replace and resend
-        deadline[w] = time.monotonic() + self.timeout
+      for w in [w for w in pending if self._conns[w] not in ready
+                and self._procs[w].sentinel not in ready]:
+        if now - beat[w] >= self.timeout:
+          why = f"unresponsive for {now - beat[w]:.0f} s"
+        elif now - began[w] >= self.call_timeout:
+          why = f"still busy after {now - began[w]:.0f} s"
+        else:
+          continue
+        self._retry(w, pending, tries, why)  # hung: replace and resend
+        began[w] = beat[w] = time.monotonic()
       seen = set()
       for obj in ready:
         w = waitables[obj]
@@ -403,16 +568,12 @@ class WorkerPool:
         if w in seen or obj not in current:
           continue  # finished, handled this round, or a replaced worker's handle
         seen.add(w)
-        conn = self._conns[w]
-        msg = None
-        if conn.poll():
-          try:
-            msg = conn.recv()
-          except (EOFError, OSError):
-            msg = None
+        msg = self._receive(w)
         if msg is None:
           self._retry(w, pending, tries, "died")
-          deadline[w] = time.monotonic() + self.timeout
+          began[w] = beat[w] = time.monotonic()
+        elif msg[0] == "alive":
+          beat[w] = now
         elif msg[0] == "done" and msg[1] == self._call_id:
           del pending[w]
         elif msg[0] == "error":
@@ -421,6 +582,14 @@ class WorkerPool:
               self._drain(v)
           raise WorkerError(f"{self.kind} worker {w} raised:\n{msg[1]}")
     return self.output[:batch]
+
+  def _receive(self, w: int):
+    """Worker w's next message, or None if its pipe closed (it died)."""
+    conn = self._conns[w]
+    try:
+      return conn.recv() if conn.poll() else None
+    except (EOFError, OSError):
+      return None
 
   def _send(self, w: int, a: int, b: int) -> None:
     try:
@@ -431,21 +600,30 @@ class WorkerPool:
   def _retry(self, w: int, pending: dict, tries: dict, why: str) -> None:
     tries[w] += 1
     if tries[w] > self.max_retries:
-      raise WorkerError(f"{self.kind} worker {w} {why} {tries[w]} times in one call")
+      raise WorkerError(f"{self.kind} worker {w} {why}, {tries[w]} times in one call")
+    if why != "died":
+      limit = (f"no heartbeat for {self.timeout:g} s: set by make(worker_timeout=...) or "
+               f"{TIMEOUT_VARIABLE}" if why.startswith("unresponsive")
+               else f"busy over {self.call_timeout:g} s")
+      _announce(f"{self.kind} worker {w} (pid {self._procs[w].pid}) {why}; replacing it "
+                f"and redoing its slice ({limit})")
     self._replace(w)
     self._send(w, *pending[w])
 
   def _drain(self, w: int) -> None:
     """Waits for worker w's reply to the current call (or replaces it)."""
-    conn, proc = self._conns[w], self._procs[w]
-    ready = connection.wait([conn, proc.sentinel], timeout=self.timeout)
-    if conn in ready:
-      try:
-        conn.recv()
-        return
-      except (EOFError, OSError):
-        pass
-    self._replace(w)
+    began = beat = time.monotonic()
+    while True:
+      conn, proc = self._conns[w], self._procs[w]
+      due = min(beat + self.timeout, began + self.call_timeout)
+      ready = connection.wait([conn, proc.sentinel], timeout=max(0.0, due - time.monotonic()))
+      msg = self._receive(w) if ready else None
+      if msg is not None and msg[0] == "alive":
+        beat = time.monotonic()
+        continue
+      if msg is None:
+        self._replace(w)
+      return
 
 
 class OwnsWorkerPool:

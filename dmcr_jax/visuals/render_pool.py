@@ -192,7 +192,8 @@ class RenderPool(OwnsWorkerPool):
     quality: render preset, a key of `tiled.QUALITY` ("exact" = dm_control's).
     gl: "egl" or "osmesa" (default: `default_gl()`; see the module docstring).
     tiles: frames per readback in each worker (default: fill a 2048² buffer).
-    timeout: seconds a worker may take for its slice before it is replaced.
+    timeout: seconds a busy worker may send no heartbeat before it is announced
+      and replaced (None: `pool.default_timeout()`, `DMCR_WORKER_TIMEOUT`).
     frame_stack: k > 1 makes `render` return stacked observations
       (N, H, W, 3k), built in the workers (see the module docstring).
     egl_devices: EGL device indices the workers are spread over (see the module
@@ -204,7 +205,8 @@ class RenderPool(OwnsWorkerPool):
   def __init__(self, task: str, max_batch: int, height: int = 84, width: int = 84,
                camera: int | str = 0, workers: int | None = None,
                quality: str = "exact", gl: str | None = None,
-               tiles: int | None = None, timeout: float = 120.0, frame_stack: int = 1,
+               tiles: int | None = None, timeout: float | None = None,
+               frame_stack: int = 1,
                egl_devices=None):
     from dmcr_jax import models
     if "-" in task:
