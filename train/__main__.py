@@ -43,9 +43,12 @@ import json
 import os
 import sys
 
-from dmcr_jax.train.loop import (AGENT_LOOPS, CPU_PHYSICS_MAX_ENVS, PHYSICS, PHYSICS_WORKERS_MAX,
-                        RENDERERS, RESUMABLE, TrainConfig, check_config, egl_devices_arg,
-                        load_config, progress_every, train)
+from dmcr_jax.checks import positive_int
+from dmcr_jax.train.config import (AGENT_LOOPS, CPU_PHYSICS_MAX_ENVS, PHYSICS,
+                                   PHYSICS_WORKERS_MAX, RENDERERS, RESUMABLE, TrainConfig,
+                                   egl_devices_arg, load_config, resolve)
+from dmcr_jax.train.loop import train
+from dmcr_jax.train.runlog import progress_every
 from dmcr_jax.train.sac import ALGOS, COMPUTE_DTYPES, SACConfig
 
 
@@ -79,8 +82,8 @@ def build_parser() -> argparse.ArgumentParser:
   p.add_argument("--steps", type=int, default=d.steps,
                  help="training steps (transitions) per agent; with --resume, a larger "
                       "value extends the run")
-  p.add_argument("--seeds", default=",".join(map(str, d.seeds)),
-                 help="comma-separated: one agent per seed")
+  p.add_argument("--seeds", type=seeds_arg, default=",".join(map(str, d.seeds)),
+                 metavar="S[,S…]", help="comma-separated ints: one agent per seed")
   p.add_argument("--num-envs", type=int, default=d.num_envs, help="envs per agent")
   p.add_argument("--visual-seeds", default=str(d.visual_seeds),
                  help="an int (fixed look, 0 = dm_control's) or levels:<n>[,<n>...] "
@@ -108,10 +111,6 @@ def build_parser() -> argparse.ArgumentParser:
                  help="where the physics steps: auto (the host CPU for at most "
                       f"{CPU_PHYSICS_MAX_ENVS} envs in all when the learner runs on "
                       "an accelerator, else the device), cpu or device")
-  p.add_argument("--env-groups", type=int, default=d.env_groups,
-                 help="host driver: step each agent's envs in this many groups, one "
-                      "group per training step, so one group's physics and pixels are "
-                      "computed while the accelerator updates (must divide --num-envs)")
   p.add_argument("--physics-workers", type=int, default=d.physics_workers,
                  help="with the physics on the host CPU (--physics auto on an "
                       "accelerator, or cpu): processes that step it, each a slice of the "
@@ -159,7 +158,7 @@ FLAG_FIELDS = {
     "buffer_capacity": lambda c: c.buffer_capacity, "batch_size": lambda c: c.sac.batch_size,
     "image_size": lambda c: c.image_size, "renderer": lambda c: c.renderer,
     "chunk_steps": lambda c: c.chunk_steps, "physics": lambda c: c.physics,
-    "env_groups": lambda c: c.env_groups, "physics_workers": lambda c: c.physics_workers,
+    "physics_workers": lambda c: c.physics_workers,
     "quality": lambda c: c.quality,
     "workers": lambda c: c.workers, "egl_devices": lambda c: c.egl_devices,
     "dtype": lambda c: c.sac.compute_dtype,
@@ -176,11 +175,29 @@ def explicit_flags(argv) -> set[str]:
   return set(vars(q.parse_args(argv)))
 
 
+def seeds_arg(text: str) -> tuple[int, ...]:
+  """A command line's `--seeds` ("0", "0,1,2") as a tuple of ints (an argparse
+  type: a bad value is reported as the flag's error, naming the form)."""
+  parts = [p.strip() for p in text.split(",")]
+  if not all(p.lstrip("+-").isdigit() for p in parts):
+    raise argparse.ArgumentTypeError(
+        f"want distinct ints in [0, 2**31) separated by commas, e.g. 0,1,2; got {text!r}")
+  return tuple(int(p) for p in parts)
+
+
 def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
+  """The command line's `TrainConfig` (checked; a resumed run's from its
+  config.json) and the parsed arguments, whose `plan` is the config resolved
+  (`dmcr_jax.train.config.resolve`, once). A bad argument ends the process with
+  argparse's error."""
   p = build_parser()
   a = p.parse_args(argv)
   try:
-    seeds = tuple(int(x) for x in a.seeds.split(","))
+    if a.algo == "curl" and a.aug not in (None, "none"):
+      raise ValueError(f"--algo curl takes no --aug (got {a.aug!r}): CURL trains on its "
+                       "own random crops of a larger render (--image-size, default 100, "
+                       "cropped to 84); drop --aug, or use --algo sac_aug with it")
+    seeds = a.seeds
     lr = a.lr
     if lr is None and a.algo == "curl" and a.task.startswith("cheetah"):
       lr = 2e-4
@@ -198,12 +215,15 @@ def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
                       log_every=a.log_every,
                       checkpoint_every=a.checkpoint_every, agent_loop=a.agent_loop,
                       renderer=a.renderer, chunk_steps=a.chunk_steps, physics=a.physics,
-                      env_groups=a.env_groups, physics_workers=a.physics_workers,
+                      physics_workers=a.physics_workers,
                       out_dir=a.out or default_out(a.task, sac_cfg),
                       sac=sac_cfg)
     if a.resume:
       cfg = resumed_config(cfg, explicit_flags(argv))
-    check_config(cfg)
+    # Progress at least every 2 % of the run, whatever --log-every says.
+    positive_int("log_every", cfg.log_every)
+    cfg = dataclasses.replace(cfg, log_every=progress_every(cfg))
+    a.plan = resolve(cfg)
     check_own_augmentations(cfg)
   except (ValueError, FileNotFoundError) as e:
     p.error(str(e))
@@ -267,11 +287,11 @@ def default_out(task: str, sac_cfg: SACConfig) -> str:
 
 
 def main(argv=None) -> None:
-  cfg, a = parse(argv)
-  # Progress at least every 2 % of the run, whatever --log-every says.
-  cfg = dataclasses.replace(cfg, log_every=progress_every(cfg))
+  """`dmcr-train`: parses the command line, trains, prints the summary as JSON
+  (exit status 130 when interrupted)."""
+  _, a = parse(argv)
   try:
-    summary = train(cfg, resume=a.resume, progress=not a.no_progress)
+    summary = train(a.plan, resume=a.resume, progress=not a.no_progress)
   except (ValueError, FileExistsError, FileNotFoundError) as e:
     sys.exit(f"train: error: {e}")
   print(json.dumps(summary, indent=1))
