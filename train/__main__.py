@@ -15,12 +15,15 @@ Arguments are checked before anything is compiled. Outputs go to `--out`
 orbax checkpoints; `--resume` continues from the latest checkpoint (see
 `dmcr_jax.train.loop` for what is restored: agents, step and RNG key, not the buffers).
 
+Where things run is resolved once per run (`dmcr_jax.train.config.resolve`):
 `--renderer jax` renders with the JAX ray caster on the device; with the physics
-on the device too (`--physics device`) training runs in chunks of `--chunk-steps`
-vector steps, each one XLA call (`dmcr_jax.train.device_loop`). `--physics auto` (the
-default) steps small batches' physics on the host CPU, beside the learner's
-updates on the accelerator (`dmcr_jax.train.loop`). `--quality` and `--workers` belong to
-the default CPU render pool (`--renderer pool`).
+on the device too (`--physics device`, or `auto` past 64 envs) training runs in
+chunks of `--chunk-steps` vector steps, each one XLA call (the device driver,
+`dmcr_jax.train.device_loop`). `--physics auto` (the default) steps small batches'
+physics on the host CPU in `--physics-workers` processes, beside the learner's
+updates on the accelerator (the host driver, `dmcr_jax.train.loop`). `--quality`,
+`--workers` and `--egl-devices` belong to the default CPU render pool
+(`--renderer pool`).
 
 `--aug` also takes your own augmentation as `package.module:function` (e.g.
 `examples.augmentations:hue_rotation+drq`, a function of ONE uint8 sample, see
@@ -105,17 +108,23 @@ def build_parser() -> argparse.ArgumentParser:
   p.add_argument("--image-size", type=int, default=None,
                  help="rendered side (default: 84; 100 for curl)")
   p.add_argument("--renderer", default=d.renderer, metavar="{" + ",".join(RENDERERS) + "}",
-                 help="pool (MuJoCo in CPU workers) or jax (the JAX ray caster on the "
-                      "device)")
+                 help="where frames are drawn: pool (MuJoCo in CPU worker processes, "
+                      "dm_control's exact look; on a host with a spare GPU, --egl-devices "
+                      "keeps its frames off the learner's) or jax (the JAX ray caster on "
+                      "the learner's device: the faster training on one GPU, "
+                      "benchmarks/results/README.md)")
   p.add_argument("--physics", default=d.physics, choices=PHYSICS,
-                 help="where the physics steps: auto (the host CPU for at most "
-                      f"{CPU_PHYSICS_MAX_ENVS} envs in all when the learner runs on "
-                      "an accelerator, else the device), cpu or device")
+                 help="where the physics steps: auto (the host CPU, in --physics-workers "
+                      f"processes, for at most {CPU_PHYSICS_MAX_ENVS} envs in all when the "
+                      "learner runs on an accelerator, which there trains faster than "
+                      "physics on the accelerator; else the device, where --renderer jax "
+                      "runs --chunk-steps of training as one XLA call), cpu or device")
   p.add_argument("--physics-workers", type=int, default=d.physics_workers,
                  help="with the physics on the host CPU (--physics auto on an "
                       "accelerator, or cpu): processes that step it, each a slice of the "
                       "envs (0: in the training process; default: half the cores, at most "
-                      f"{PHYSICS_WORKERS_MAX}, when the learner is on an accelerator, else 0)")
+                      f"{PHYSICS_WORKERS_MAX}, when the learner is on an accelerator, where "
+                      "they pay; else 0)")
   p.add_argument("--chunk-steps", type=int, default=d.chunk_steps,
                  help="--renderer jax with the physics on the device: vector steps per "
                       "device call")

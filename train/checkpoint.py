@@ -297,13 +297,13 @@ def restore(out_dir: str, agents, key, step: int | None = None, fallback: bool =
     try:
       return _read(out_dir, step, agents, key)
     except DamagedCheckpointError as e:
-      others = [s for s in have if s != step]
+      earlier = [s for s in have if s < step]
       advice = (f"`dmcr-train --resume --out {out_dir}` continues the run from the "
-                f"checkpoint before it (step {others[-1]}), moving the damaged one aside, "
-                f"and `load_run({out_dir!r}, step={others[-1]})` loads that one"
-                if others else
-                f"it is the run's only checkpoint: start the run again (another --out, "
-                "or delete this folder)")
+                f"checkpoint before it (step {earlier[-1]}), moving the damaged one aside, "
+                f"and `load_run({out_dir!r}, step={earlier[-1]})` loads that one"
+                if earlier else
+                "no checkpoint of the run comes before it: start the run again (another "
+                "--out, or delete this folder)")
       raise DamagedCheckpointError(f"{e}; {advice}") from None
   reasons = []
   for s in reversed(have):
@@ -313,7 +313,7 @@ def restore(out_dir: str, agents, key, step: int | None = None, fallback: bool =
       reasons.append(str(e))
       aside = move_aside(out_dir, s)
       print(f"train: {e}; moved it to {aside}"
-            + (f", resuming from the checkpoint before it" if s != have[0] else ""),
+            + (", resuming from the checkpoint before it" if s != have[0] else ""),
             file=sys.stderr, flush=True)
       continue
     return restored

@@ -393,6 +393,19 @@ class Plan:
   devices: int
   notes: tuple[str, ...] = ()
 
+  def describe(self) -> str:
+    """Where the run's parts go, in words (`train` prints it as it starts)."""
+    frames = ("the JAX ray caster" if self.cfg.renderer == "jax"
+              else f"the render pool ({self.cfg.quality})")
+    physics = ("on the learner's device" if self.physics_device is None else
+               f"on the host CPU in {self.physics_workers} worker processes"
+               if self.physics_workers else "on the host CPU in this process")
+    driver = ("the device driver, chunks of training as one XLA call" if self.device_driver
+              else f"the host driver, the agents on {self.devices} device"
+              + ("s" if self.devices > 1 else ""))
+    return (f"{len(self.agents)} agent{'s' if len(self.agents) > 1 else ''} × "
+            f"{self.cfg.num_envs} envs; frames by {frames}, physics {physics}; {driver}")
+
 
 def resolve(cfg: TrainConfig, devices: int | None = None) -> Plan:
   """Checks `cfg` (`check_config`) and `devices` once and resolves the run's `Plan`.

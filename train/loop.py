@@ -47,7 +47,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from dmcr_jax.train import checkpoint, config, replay, runlog
-from dmcr_jax.train import devices as devs
 from dmcr_jax.train import step as train_step
 # Names other modules and earlier code reach through this module.
 from dmcr_jax.train.checkpoint import init_agents, load_run  # noqa: F401
@@ -305,13 +304,13 @@ def train(cfg: TrainConfig | Plan, resume: bool = False, progress: bool = True,
   """
   plan = cfg if isinstance(cfg, Plan) else resolve(cfg, devices)
   cfg = plan.cfg
-  for line in plan.notes:
-    print(f"{cfg.task}: {line}", file=sys.stderr, flush=True)
   with contextlib.ExitStack() as stack:
     stack.callback(open_run(cfg, resume).release)
     done = finished_summary(cfg) if resume else None
     if done is not None:
       return done
+    for line in (plan.describe(),) + plan.notes:
+      print(f"{cfg.task}: {line}", file=sys.stderr, flush=True)
     extra = dict(obs_on_device=True) if cfg.renderer == "jax" else {}
     env = stack.enter_context(make_env(cfg, physics_device=plan.physics_device,
                                        physics_workers=plan.physics_workers, **extra))
