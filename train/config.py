@@ -346,8 +346,12 @@ def load_config(out_dir: str) -> TrainConfig:
   path = os.path.join(out_dir, "config.json")
   if not os.path.exists(path):
     raise FileNotFoundError(f"{path} does not exist: is {out_dir!r} a `train` output folder?")
-  with open(path) as f:
-    raw = json.load(f)
+  try:
+    with open(path) as f:
+      raw = json.load(f)
+  except ValueError as e:
+    raise ValueError(f"{path} is not a readable run config (damaged JSON: {e}): restore it "
+                     "from a copy, or start a new run in another folder") from None
   raw["seeds"] = tuple(raw["seeds"])
   if raw.get("egl_devices") is not None:
     raw["egl_devices"] = tuple(raw["egl_devices"])
