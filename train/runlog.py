@@ -119,7 +119,8 @@ class RunLog:
   """
 
   def __init__(self, cfg, specs, looks, start: int, resume: bool, progress: bool):
-    self.cfg, self.specs, self.looks, self.start = cfg, specs, looks, start
+    self.cfg, self.specs, self.start = cfg, list(specs), start
+    self.looks = None if looks is None else list(looks)
     self.every = progress_every(cfg)
     self._last_line = None
     self.stop = {"signal": None}
