@@ -142,11 +142,14 @@ class TrainConfig:
       size = self.sac.curl_crop + 16 if self.sac.algo == "curl" else 84
       object.__setattr__(self, "image_size", size)
 
-  @functools.cached_property
+  @property
   def looks(self) -> tuple[int | SeedRange, ...]:
-    """`visual_seeds` parsed (`parse_visual_seeds`, once per config): the training
+    """`visual_seeds` parsed (`parse_visual_seeds`, once per value): the training
     looks of each look group."""
-    return parse_visual_seeds(self.visual_seeds)
+    try:
+      return _parsed_visual_seeds(self.visual_seeds)
+    except TypeError:  # unhashable: parsed (and refused) as it is
+      return parse_visual_seeds(self.visual_seeds)
 
   def agents(self) -> list[tuple[int, str]]:
     """(seed, augmentation) of each agent, in the order of the agent axis (look
@@ -238,6 +241,11 @@ def parse_visual_seeds(value) -> tuple[int | SeedRange, ...]:
   except (TypeError, ValueError):
     raise bad("not a seed in [0, 2**31 - 1]") from None
   return (seed,)
+
+
+@functools.lru_cache(maxsize=64, typed=True)
+def _parsed_visual_seeds(value) -> tuple[int | SeedRange, ...]:
+  return parse_visual_seeds(value)
 
 
 def look_label(look: int | SeedRange) -> str:
