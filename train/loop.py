@@ -335,11 +335,7 @@ def train(cfg: TrainConfig | Plan, resume: bool = False, progress: bool = True,
                                             resume, progress))
     step, saved = start, start
     for before, step, episodes, learner in steps:
-      wall = log.wall()
-      for episode in episodes:
-        log.episode(*episode[:3], wall, episode[3])
-      if log.due(before, step):
-        log.progress(step)
+      log.report(before, step, episodes)
       if crossed(cfg.checkpoint_every, before, step) or step >= cfg.steps or log.stopped:
         checkpoint.save(manager, step, learner.agents, learner.key)
         log.checkpointed(step)

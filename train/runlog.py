@@ -1,9 +1,10 @@
 """What a training run reports: its episode log, its progress, its segments and summary.
 
-`RunLog` is the one place a driver reports to between steps (or chunks): each
-finished episode (a row of `<out>/log.csv`, flushed at once), the progress
-(a tqdm bar on a terminal, else a progress line on stderr every few percent),
-each checkpoint (`<out>/segments.json` updated), and the stop flag that
+`RunLog` is the one place a run reports to between steps (or chunks): `report`
+(a driver's step and its finished episodes) logs each episode (a row of
+`<out>/log.csv`, flushed at once) and moves the progress (a tqdm bar on a
+terminal, else a progress line on stderr every few percent); `checkpointed`
+records each checkpoint (`<out>/segments.json`); `stopped` is the flag that
 SIGINT/SIGTERM set.
 
 The log is the run's truth: a resumed run first drops the rows logged past
@@ -181,6 +182,16 @@ class RunLog:
     self._file.flush()
     if self._bar is not None and step > self._bar.n:
       self._bar.update(min(step, self.cfg.steps) - self._bar.n)
+
+  def report(self, before: int, step: int, episodes) -> None:
+    """The one call a driver makes per step (or chunk) that moved the run from
+    `before` to `step`: each finished episode (step, agent, return, update
+    metrics) logged, then the progress when `due`."""
+    wall = self.wall()
+    for at, agent, episode_return, metrics in episodes:
+      self.episode(at, agent, episode_return, wall, metrics)
+    if self.due(before, step):
+      self.progress(step)
 
   def due(self, before: int, step: int) -> bool:
     """Whether the loop should call `progress` after moving from `before` to `step`:
