@@ -297,6 +297,14 @@ def train(cfg: TrainConfig | Plan, resume: bool = False, progress: bool = True,
   checkpoints. A resumed run whose checkpoint is at `steps` already returns its
   summary at once.
 
+  Args:
+    cfg: the run's config, or its plan (`dmcr_jax.train.config.resolve`; then
+      `devices` is the plan's).
+    resume: continue the run in `cfg.out_dir` from its newest intact checkpoint.
+    progress: a progress bar on a terminal (progress lines otherwise, and always
+      without one).
+    devices: local devices to shard the agents over (None: `resolve`'s choice).
+
   Raises:
     ValueError: a bad config, device count or run folder (before anything is built).
     FileExistsError: `out_dir` already holds checkpoints and `resume` is False.
@@ -333,18 +341,14 @@ def train(cfg: TrainConfig | Plan, resume: bool = False, progress: bool = True,
     manager = checkpoint.manager(cfg.out_dir)
     log = stack.enter_context(runlog.RunLog(cfg, plan.agents, plan.look_labels, start,
                                             resume, progress))
-    step, saved = start, start
-    for before, step, episodes, learner in steps:
+    step = start
+    for before, step, episodes, learner in steps:   # the stepper ends at `steps`
       log.report(before, step, episodes)
       if crossed(cfg.checkpoint_every, before, step) or step >= cfg.steps or log.stopped:
         checkpoint.save(manager, step, learner.agents, learner.key)
         log.checkpointed(step)
-        saved = step
       if log.stopped:
         break
-    if saved != step or not checkpoint.steps(cfg.out_dir):
-      checkpoint.save(manager, step, learner.agents, learner.key)
-      log.checkpointed(step)
     if log.stopped:
       print(f"interrupted: saved checkpoint at step {step} in "
             f"{os.path.join(checkpoint.folder(cfg.out_dir), str(step))}; resume with "
