@@ -110,16 +110,17 @@ def run(train_argv: list[str], threshold: float, run_dir: str, baseline: bool = 
   agents sharded over `devices` local devices (None: as `train` picks); one
   result row."""
   from dmcr_jax.train import __main__ as train_cli
-  from dmcr_jax.train import loop
+  from dmcr_jax.train import config, loop
 
   cfg, _ = train_cli.parse(list(train_argv) + ["--out", run_dir])
-  used = 1 if cfg.device_driver() else loop.mesh_devices(len(cfg.agents()), devices)
+  plan = config.resolve(cfg, devices)
+  used = plan.devices
   alone = learner_alone(cfg, devices=used) if baseline else None
   if alone:
     print(f"learner alone: {alone['updates_per_s_per_agent']:.1f} updates/s per agent",
           flush=True)
   t0 = time.perf_counter()
-  summary = loop.train(cfg, progress=False, devices=devices)
+  summary = loop.train(plan, progress=False)
   process_s = time.perf_counter() - t0
   with open(os.path.join(run_dir, "log.csv")) as f:
     log_rows = list(csv.DictReader(f))
@@ -135,12 +136,12 @@ def run(train_argv: list[str], threshold: float, run_dir: str, baseline: bool = 
   return dict(
       bench="train", device=device.device_kind, platform=device.platform,
       jax=jax.__version__, cpus=os.cpu_count(), task=cfg.task, steps=summary["steps"],
-      agents=agents, devices=used, num_envs=cfg.num_envs, env_groups=cfg.env_groups, quality=cfg.quality,
+      agents=agents, devices=used, num_envs=cfg.num_envs, quality=cfg.quality,
       dtype=cfg.sac.compute_dtype, batch_size=cfg.sac.batch_size, utd=cfg.utd,
       action_repeat=cfg.action_repeat, wall_s=summary["wall_s"], process_s=process_s,
       transitions_per_s=summary["steps"] / summary["wall_s"] if summary["wall_s"] else None,
-      renderer=cfg.renderer, physics=cfg.physics_device() or jax.default_backend(),
-      physics_workers=cfg.physics_pool_workers(),
+      renderer=cfg.renderer, physics=plan.physics_device or jax.default_backend(),
+      physics_workers=plan.physics_workers,
       steady_transitions_per_s=steady,
       total_transitions_per_s=steady * agents if steady else None,
       learner_updates_per_s=updates_alone,
@@ -163,10 +164,10 @@ def check_device_counts(text: str, cfg) -> list[int]:
   """
   import jax
   from dmcr_jax.benchmarks import learner
-  from dmcr_jax.train import loop
+  from dmcr_jax.train import config
   counts = learner.device_counts(text, [len(cfg.agents())], jax.local_device_count())
   for n in counts:
-    loop.check_train_devices(cfg, n)
+    config.resolve(cfg, n)
   return counts
 
 
@@ -214,8 +215,8 @@ def markdown(rows: list[dict]) -> str:
       ("device", "device"), ("task", "task"), ("renderer", lambda r: r.get("renderer", "pool")),
       ("physics", lambda r: r.get("physics", "–")),
       ("physics workers", lambda r: r.get("physics_workers", "–")),
-      ("agents × envs (groups)",
-       lambda r: f"{r['agents']} × {r['num_envs']} ({r.get('env_groups', 1)})"),
+      ("agents × envs",
+       lambda r: f"{r['agents']} × {r['num_envs']}"),
       ("devices", lambda r: r.get("devices", "–")), ("steps", lambda r: f"{r['steps']:,}"),
       ("dtype", "dtype"),
       ("quality", lambda r: r["quality"] if r.get("renderer", "pool") == "pool" else "–"),

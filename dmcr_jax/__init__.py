@@ -9,17 +9,11 @@ as `dmcr/<task>-v0`) are single envs for existing pixel-RL code. `ALL_TASKS`
 lists the 22 DMCR tasks; `levels(n)` and `TEST_SEEDS` are the few-shot training
 and held-out visual-seed ranges.
 
-Importing the package on a machine without a display (no `DISPLAY`) and without
-`MUJOCO_GL` set selects MuJoCo's headless EGL backend, since MuJoCo reads
-`MUJOCO_GL` once at import and its default (GLFW) needs a display.
-
-It also adds ``--xla_cpu_enable_concurrency_optimized_scheduler=false`` to
-`XLA_FLAGS` unless that flag is already there: with XLA's default CPU scheduler a
-jitted MJX step of about a thousand vmapped walkers (and the pixel env's step at
-that size) can stall on a machine with few cores, every thread parked on a futex.
-It only affects XLA's CPU backend, and only if the
-package is imported before JAX's first computation (when XLA reads its flags);
-set the flag yourself to choose otherwise.
+Importing the package changes the process in two ways only, both environment
+variables that a library read once at its own import would otherwise have fixed
+too late, each left alone when the user set it (`_process_settings` says what
+and why). Besides them it only registers `dmcr/<task>-v0` with gymnasium: no JAX
+config, no logging settings, nothing on stdout.
 
 mujoco-mjx prints "Failed to import warp: No module named 'warp'" to stdout when
 the optional `warp` package is absent; the package's modules import `mujoco.mjx`
@@ -33,14 +27,31 @@ which imports the package to reach its own modules, does not load MJX or the env
 
 import os as _os
 
-if "MUJOCO_GL" not in _os.environ and not _os.environ.get("DISPLAY"):
-  _os.environ["MUJOCO_GL"] = "egl"
-  _os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-
 CPU_SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
-"""Added to `XLA_FLAGS` at import unless the flag is set (module docstring)."""
-if "xla_cpu_enable_concurrency_optimized_scheduler" not in _os.environ.get("XLA_FLAGS", ""):
-  _os.environ["XLA_FLAGS"] = f"{_os.environ.get('XLA_FLAGS', '')} {CPU_SCHEDULER_FLAG}".strip()
+"""Added to `XLA_FLAGS` at import unless the flag is set (`_process_settings`)."""
+
+
+def _process_settings() -> None:
+  """The only settings `import dmcr_jax` makes (each kept as the user set it):
+
+  - `MUJOCO_GL=egl` (and `PYOPENGL_PLATFORM=egl`) when neither `MUJOCO_GL` nor a
+    `DISPLAY` is set: MuJoCo reads `MUJOCO_GL` once, at its import, and its default
+    (GLFW) needs a display, so on a headless machine every render would fail.
+  - `CPU_SCHEDULER_FLAG` in `XLA_FLAGS` unless that flag is there: with XLA's
+    default CPU scheduler a jitted MJX step of about a thousand vmapped walkers
+    (and the pixel env's step at that size) can stall on a machine with few cores,
+    every thread parked on a futex. It affects only XLA's CPU backend, and only if
+    the package is imported before JAX's first computation (when XLA reads its
+    flags).
+  """
+  if "MUJOCO_GL" not in _os.environ and not _os.environ.get("DISPLAY"):
+    _os.environ["MUJOCO_GL"] = "egl"
+    _os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+  if "xla_cpu_enable_concurrency_optimized_scheduler" not in _os.environ.get("XLA_FLAGS", ""):
+    _os.environ["XLA_FLAGS"] = f"{_os.environ.get('XLA_FLAGS', '')} {CPU_SCHEDULER_FLAG}".strip()
+
+
+_process_settings()
 
 from dmcr_jax._lazy import lazy_names as _lazy_names
 from dmcr_jax.models import ALL_TASKS, DOMAIN_TASKS, load  # names only: light

@@ -11,7 +11,7 @@ import textwrap
 import pytest
 
 from dmcr_jax.benchmarks import learner, training
-from dmcr_jax.train import loop
+from dmcr_jax.train import devices as devs
 
 TINY_NETS = dict(conv_channels=4, feature_dim=8, hidden_dim=16)
 """Networks small enough to build and compile in seconds on a CPU (the subprocesses
@@ -36,7 +36,7 @@ def run_on_cpu_devices(script: str, devices: int = 2, timeout: int = 300) -> str
 
 def test_device_counts_are_parsed_sorted_and_bad_ones_name_the_valid_choices():
   assert learner.device_counts("4,1,2,2", [8, 4], 8) == [1, 2, 4]
-  assert loop.valid_device_counts(6, 8) == [1, 2, 3, 6]
+  assert devs.valid_device_counts(6, 8) == [1, 2, 3, 6]
   for text, agents, why in [
       ("16", [8], "16 devices: more than the local devices"),
       ("3", [8], "K = 8 agents is not a multiple of 3"),
@@ -50,27 +50,27 @@ def test_device_counts_are_parsed_sorted_and_bad_ones_name_the_valid_choices():
     learner.device_counts("2", [1, 8], 8)
   assert str(e.value).endswith("on 8 local devices: 1")
   with pytest.raises(ValueError, match="valid counts for 6 agents: 1, 2, 3, 6"):
-    loop.check_devices(4, 6, 8)
-  assert loop.mesh_devices(6, None, 4) == 1 and loop.mesh_devices(8, None, 4) == 4
-  assert loop.mesh_devices(8, 2, 4) == 2
+    devs.check_devices(4, 6, 8)
+  assert devs.mesh_devices(6, None, 4) == 1 and devs.mesh_devices(8, None, 4) == 4
+  assert devs.mesh_devices(8, 2, 4) == 2
 
 
 def test_train_says_why_it_uses_one_of_several_devices():
-  assert "the 3 agents are not a multiple of 2" in loop.one_device_note(3, 2, None, False)
-  assert "device driver" in loop.one_device_note(4, 2, None, True)
-  assert loop.one_device_note(4, 2, None, False) is None   # sharded over both
-  assert loop.one_device_note(3, 2, 1, False) is None      # one asked for
-  assert loop.one_device_note(3, 1, None, False) is None   # one there
+  assert "the 3 agents are not a multiple of 2" in devs.one_device_note(3, 2, None, False)
+  assert "device driver" in devs.one_device_note(4, 2, None, True)
+  assert devs.one_device_note(4, 2, None, False) is None   # sharded over both
+  assert devs.one_device_note(3, 2, 1, False) is None      # one asked for
+  assert devs.one_device_note(3, 1, None, False) is None   # one there
 
 
 def test_train_says_how_to_draw_the_pools_frames_on_an_idle_gpu():
-  note = loop.shared_frames_note("pool", None, "gpu", 2, 1)
+  note = devs.shared_frames_note("pool", None, "gpu", 2, 1)
   assert "--egl-devices 1" in note and "1 of the 2 GPUs stay idle" in note
-  assert "--egl-devices 2" in loop.shared_frames_note("pool", None, "gpu", 4, 2)
-  assert loop.shared_frames_note("pool", None, "gpu", 2, 2) is None    # learner on both
-  assert loop.shared_frames_note("pool", (1,), "gpu", 2, 1) is None    # already chosen
-  assert loop.shared_frames_note("jax", None, "gpu", 2, 1) is None     # no EGL frames
-  assert loop.shared_frames_note("pool", None, "cpu", 2, 1) is None    # no learner GPU
+  assert "--egl-devices 2" in devs.shared_frames_note("pool", None, "gpu", 4, 2)
+  assert devs.shared_frames_note("pool", None, "gpu", 2, 2) is None    # learner on both
+  assert devs.shared_frames_note("pool", (1,), "gpu", 2, 1) is None    # already chosen
+  assert devs.shared_frames_note("jax", None, "gpu", 2, 1) is None     # no EGL frames
+  assert devs.shared_frames_note("pool", None, "cpu", 2, 1) is None    # no learner GPU
 
 
 def test_scaling_efficiency_is_the_rate_over_devices_times_the_one_device_rate():
@@ -160,11 +160,12 @@ def test_learner_runs_the_update_sharded_over_two_devices():
       """)
 
 
-def _fake_train_run(cfg, progress=True, devices=None):
-  """Stands in for `dmcr_jax.train.loop.train`: a log.csv whose steady rate is 100
-  transitions/s per agent on one device and 90 % per device more on several."""
+def _fake_train_run(plan, progress=True):
+  """Stands in for `dmcr_jax.train.loop.train` (given a plan): a log.csv whose steady
+  rate is 100 transitions/s per agent on one device and 90 % per device more on
+  several."""
+  cfg, n = plan.cfg, plan.devices
   os.makedirs(cfg.out_dir, exist_ok=True)
-  n = loop.mesh_devices(len(cfg.agents()), devices)
   rate = 100.0 * (1 if n == 1 else 0.9 * n)
   with open(os.path.join(cfg.out_dir, "log.csv"), "w") as f:
     f.write("step,agent,episode_return,wall_s\n")

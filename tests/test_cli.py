@@ -28,6 +28,24 @@ def test_importing_the_package_prints_nothing_to_stdout():
   assert "warp" not in stderr
 
 
+def test_importing_the_package_sets_only_what_its_docstring_names():
+  # `dmcr_jax._process_settings`: MUJOCO_GL (with PYOPENGL_PLATFORM) on a headless
+  # machine and XLA's CPU scheduler flag; gymnasium, which registers the envs,
+  # sets its own PYGAME_HIDE_SUPPORT_PROMPT. No JAX is imported, none configured.
+  script = ("import os, sys; before = dict(os.environ); import dmcr_jax; "
+            "print(sorted(k for k in set(before) | set(os.environ) "
+            "if before.get(k) != os.environ.get(k)), 'jax' in sys.modules)")
+  env = {k: v for k, v in os.environ.items()
+         if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM", "XLA_FLAGS", "DISPLAY")}
+  out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                       timeout=120, cwd=ROOT, env=env)
+  assert out.returncode == 0, out.stderr[-2000:]
+  changed, jax_imported = out.stdout.rsplit(" ", 1)
+  assert set(eval(changed)) <= {"MUJOCO_GL", "PYOPENGL_PLATFORM", "XLA_FLAGS",
+                                "PYGAME_HIDE_SUPPORT_PROMPT"}, changed
+  assert jax_imported.strip() == "False"
+
+
 def test_train_and_benchmarks_install_under_the_projects_name(tmp_path):
   # Run outside the repository, so only the installed packages are importable: the
   # top-level folders must not install as `train` / `benchmarks` (they would shadow

@@ -256,40 +256,6 @@ def test_add_and_sample_reject_bad_arguments():
     replay.sample(buf, KEY, 0)
 
 
-def test_groups_written_apart_match_lockstep():
-  """Envs written a group at a time, one group a step ahead of the other (as the
-  host driver's env groups do), hold what lockstep writes hold: at every point
-  each env's valid transitions are its own reference, and once both groups
-  have written every step the buffer equals the lockstep one."""
-  lengths, num_steps, ring, k, g = (5, 3, 4, 6), 30, 12, 3, 2
-  sim = _simulate(lengths, num_steps, k)
-  buf = replay.init(ring * sim["n"], sim["n"], (H, W, 3), A, k)
-  add = jax.jit(replay.add, static_argnames="first_env")
-
-  def write(buf, t, group):
-    envs = slice(group * g, (group + 1) * g)
-    return add(buf, sim["frames"][t, envs], sim["first"][t, envs], sim["action"][t, envs],
-               sim["reward"][t, envs], first_env=group * g)
-
-  for t in range(num_steps):
-    buf = write(buf, t, 0)
-    if t in (4, 13, 29):  # group 0 has written t + 1 steps, group 1 t steps
-      mask = np.asarray(_valid(buf))
-      for group, steps in ((0, t + 1), (1, t)):
-        ref = _reference_valid(_simulate(lengths, steps, k), ring)
-        want = np.zeros((sim["n"], ring), bool)
-        for i, s in ref:
-          want[i, s % ring] = True
-        envs = slice(group * g, (group + 1) * g)
-        np.testing.assert_array_equal(mask[envs], want[envs])
-    buf = write(buf, t, 1)
-  lockstep = _fill(sim, ring, k)
-  jax.tree.map(np.testing.assert_array_equal, buf, lockstep)
-  with pytest.raises(ValueError, match="envs 3…4 are not among the buffer's 4 envs"):
-    add(buf, sim["frames"][0, :2], sim["first"][0, :2], sim["action"][0, :2],
-        sim["reward"][0, :2], first_env=3)
-
-
 def test_jitted_once_and_scan_matches_loop():
   traces = {"add": 0, "sample": 0}
 

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dmcr_jax.train import loop, sac
+from dmcr_jax.train import checkpoint, config, loop, runlog, sac
 from dmcr_jax.train.__main__ import parse
 
 # With test_demo and test_evaluate, whose runs the drivers' tests share.
@@ -44,11 +44,17 @@ CFG = dict(task="pendulum-swingup", action_repeat=100, image_size=16, buffer_cap
     (["--dtype", "float16"], "float32, bfloat16"),
     (["--agent-loop", "pmap"], "vmap, map"),
     (["--aug", "drq,drq"], "distinct"),
+    (["--seeds", "abc"], "argument --seeds: want distinct ints in [0, 2**31) separated by "
+                         "commas, e.g. 0,1,2; got 'abc'"),
+    (["--algo", "curl", "--aug", "drq"], "--algo curl takes no --aug (got 'drq')"),
+    (["--log-every", "0"], "log_every must be a positive int"),
 ])
 def test_bad_arguments_fail_before_anything_is_built(argv, match, capsys):
   with pytest.raises(SystemExit):
     parse(argv)
-  assert match in capsys.readouterr().err
+  err = capsys.readouterr().err
+  assert match in err
+  assert "beta" not in err and "invalid literal" not in err
 
 
 def test_defaults_follow_the_paper():
@@ -63,18 +69,21 @@ def test_physics_steps_in_worker_processes_on_half_the_cores_beside_an_accelerat
   assert loop.default_physics_workers(16, "gpu") == 8
   assert loop.default_physics_workers(64, "gpu") == loop.PHYSICS_WORKERS_MAX
   assert loop.default_physics_workers(8, "gpu") == 4
-  assert loop.default_physics_workers(16, "gpu", groups=2) == 4  # shared by the groups
   assert loop.default_physics_workers(3, "gpu") == 0  # one worker: the training process
   assert loop.default_physics_workers(16, "cpu") == 0  # the learner needs the cores
-  # A config's count: the default where the physics steps on the host CPU, what
-  # it says otherwise, none where the physics steps on the device.
+  # A plan's count: the default where the physics steps on the host CPU, what the
+  # config says otherwise, none where the physics steps on the device.
   monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
   monkeypatch.setattr(os, "cpu_count", lambda: 16)
   assert parse([])[0].physics_workers is None
-  assert loop.TrainConfig().physics_pool_workers() == 8  # "auto": 32 envs on the host CPU
-  assert loop.TrainConfig(physics_workers=0).physics_pool_workers() == 0
-  assert loop.TrainConfig(physics_workers=3).physics_pool_workers() == 3
-  assert loop.TrainConfig(physics="device").physics_pool_workers() == 0
+  plan = lambda **kw: config.resolve(loop.TrainConfig(**kw))
+  assert plan().physics_workers == 8 and plan().physics_device == "cpu"  # 32 envs, "auto"
+  assert not plan().device_driver and plan(renderer="jax").device_driver is False
+  assert plan(physics_workers=0).physics_workers == 0
+  assert plan(physics_workers=3).physics_workers == 3
+  assert plan(physics="device").physics_workers == 0
+  assert plan(physics="device", renderer="jax").device_driver
+  assert plan(num_envs=65).physics_device is None  # "auto": past CPU_PHYSICS_MAX_ENVS
 
 
 def demo_run(out, **changes) -> loop.TrainConfig:
@@ -102,7 +111,7 @@ def test_resume_takes_every_setting_from_the_runs_config(tmp_path, capsys):
   # Flags that may change are applied; equal ones are accepted.
   resumed, _ = parse(["--out", cfg.out_dir, "--resume", "--steps", "900", "--log-every",
                       "7", "--task", "pendulum-swingup", "--image-size", "16"])
-  assert resumed == loop.dataclasses.replace(cfg, steps=900, log_every=7)
+  assert resumed == dataclasses.replace(cfg, steps=900, log_every=7)
   # Others are refused, naming them; nothing is written.
   with pytest.raises(SystemExit):
     parse(["--out", cfg.out_dir, "--resume", "--image-size", "32", "--warmup-steps", "1000"])
@@ -119,9 +128,9 @@ def test_resume_takes_every_setting_from_the_runs_config(tmp_path, capsys):
 def test_open_run_checks_a_resumed_config_before_writing(tmp_path):
   cfg, text = _saved_run(tmp_path)
   with pytest.raises(ValueError, match=r"image_size \(32, the run has 16\)"):
-    loop.open_run(loop.dataclasses.replace(cfg, image_size=32), resume=True)
+    loop.open_run(dataclasses.replace(cfg, image_size=32), resume=True)
   with pytest.raises(FileNotFoundError, match="no checkpoint"):
-    loop.open_run(loop.dataclasses.replace(cfg, steps=600), resume=True)
+    loop.open_run(dataclasses.replace(cfg, steps=600), resume=True)
   with open(os.path.join(cfg.out_dir, "config.json")) as f:
     assert f.read() == text
   assert os.listdir(cfg.out_dir) == ["config.json"]
@@ -133,9 +142,8 @@ def test_checkpoint_round_trip(tmp_path):
   # other tests; an eager vmap compiles each of its many operations).
   make = lambda s: loop.init_agents(loop.TrainConfig(seeds=(s, s + 1), sac=TINY), (16, 16, 9), 1)
   saved, key = make(0), jax.random.key(42)
-  manager = loop._checkpointer(str(tmp_path))
-  loop._save(manager, 7, saved, key)
-  agents, key2, step = loop._restore(loop._checkpointer(str(tmp_path)), make(1), jax.random.key(0))
+  checkpoint.save(checkpoint.manager(str(tmp_path)), 7, saved, key)
+  agents, key2, step = checkpoint.restore(str(tmp_path), make(1), jax.random.key(0))
   assert step == 7
   np.testing.assert_array_equal(jax.random.key_data(key2), jax.random.key_data(key))
   for a, b in zip(jax.tree.leaves(saved), jax.tree.leaves(agents)):
@@ -181,7 +189,9 @@ def test_interrupted_run_resumes_where_it_stopped(tmp_path):
   stopped = int(stdout.split()[-1])
   assert 20 <= stopped < 400
   saved = max(int(d) for d in os.listdir(ckpt) if d.isdigit())
-  assert saved == stopped  # the signal's checkpoint
+  assert saved == stopped  # the signal's checkpoint, and where it is said
+  assert (f"interrupted: saved checkpoint at step {stopped} in {ckpt}/{stopped}; resume "
+          f"with dmcr-train --resume --out {out}") in stderr
 
   cfg = loop.TrainConfig(steps=stopped + 15, checkpoint_every=0, out_dir=out, seeds=(0, 1),
                          **{k: v for k, v in CFG.items()})
@@ -197,6 +207,10 @@ def test_interrupted_run_resumes_where_it_stopped(tmp_path):
   with open(os.path.join(out, "log.csv")) as f:
     rows = list(csv.DictReader(f))
   assert {r["agent"] for r in rows} == {"0", "1"}
+  steps = [int(r["step"]) for r in rows]
+  assert steps == sorted(steps) and steps[-1] > stopped  # the log never goes back
+  walls = [float(r["wall_s"]) for r in rows]
+  assert walls == sorted(walls)  # wall time carries across the resume
   assert os.path.exists(os.path.join(out, "learning_curve.png"))
   restored_cfg, agents, step = loop.load_run(out)
   assert step == stopped + 15 and restored_cfg == cfg
@@ -285,44 +299,6 @@ def test_host_driver_trains_the_same_agents_whichever_it_dispatches_first(tmp_pa
 
 
 @pytest.mark.slow
-def test_env_groups_step_in_turn_and_store_each_groups_own_frames(tmp_path, monkeypatch):
-  # Two env groups (the host driver's double-buffered sampling): the groups store
-  # in turn, each group's stored observations are its own consecutive frame
-  # stacks (a stack is the previous one shifted by a frame, unless an episode
-  # starts), and the run owes and runs the updates an ungrouped run does.
-  from dmcr_jax.train import step as train_step
-  stores = []
-  store = train_step.store_jit
-
-  def recording_store(learner, obs, first, action, reward, **kw):
-    stores.append((kw.get("group", 0), np.asarray(obs), np.asarray(first)))
-    return store(learner, obs, first, action, reward, **kw)
-
-  monkeypatch.setattr(train_step, "store_jit", recording_store)
-  base = {k: v for k, v in CFG.items() if k not in ("quality", "workers", "num_envs")}
-  updates = {}
-  for groups in (1, 2):   # one group: the host driver run of the test above
-    stores.clear()
-    cfg = demo_run(tmp_path / str(groups), steps=24, env_groups=groups, physics="cpu")
-    loop.train(cfg, progress=False)
-    _, agents, step = loop.load_run(cfg.out_dir)
-    assert step == 24
-    updates[groups] = int(agents.step[0])
-  assert updates[1] == updates[2] > 0
-  assert [g for g, _, _ in stores] == [0, 1] * 12
-  for g in (0, 1):
-    mine = [(obs[0], first[0]) for gg, obs, first in stores if gg == g]
-    for (prev, _), (obs, first) in zip(mine, mine[1:]):
-      if not first:
-        np.testing.assert_array_equal(obs[..., :-3], prev[..., 3:])
-  with pytest.raises(ValueError, match="env_groups \\(3\\) must divide num_envs \\(2\\)"):
-    loop.check_config(loop.TrainConfig(env_groups=3, **{**CFG, "num_envs": 2}))
-  with pytest.raises(ValueError, match="env_groups > 1 needs the host driver"):
-    loop.check_config(loop.TrainConfig(num_envs=2, env_groups=2, renderer="jax",
-                                       physics="device", **base))
-
-
-@pytest.mark.slow
 def test_agents_sharded_over_two_devices_or_mapped_match_one_vmapped_call():
   script = textwrap.dedent("""
       import dataclasses
@@ -382,7 +358,7 @@ def test_run_log_reports_progress_every_few_percent_and_announces_compiling(tmp_
   # until its end, and compiled for a minute without a word.
   cfg = loop.TrainConfig(steps=600, log_every=1000, out_dir=str(tmp_path), **{
       k: v for k, v in CFG.items() if k != "log_every"})
-  log = loop.RunLog(cfg, 0, resume=False, progress=False)
+  log = runlog.RunLog(cfg, cfg.agents(), None, 0, resume=False, progress=False)
   try:
     assert "compiling" in capsys.readouterr().err
     assert log.every == 12  # 2 % of the run
@@ -394,6 +370,50 @@ def test_run_log_reports_progress_every_few_percent_and_announces_compiling(tmp_
       assert [r["episode_return"] for r in csv.DictReader(f)] == ["123.5"]
   finally:
     log.close()
+
+
+def test_progress_into_a_redirected_stderr_is_lines_not_a_bar(tmp_path, capsys):
+  # tqdm wrote every update (carriage returns and all) into a redirected stderr;
+  # without a terminal the progress is a line every few percent.
+  cfg = loop.TrainConfig(steps=600, out_dir=str(tmp_path), **CFG)
+  with runlog.RunLog(cfg, cfg.agents(), None, 0, resume=False, progress=True) as log:
+    assert not sys.stderr.isatty()
+    for step in range(2, 26, 2):
+      log.episode(step, 0, 1.0, 1.0, {})
+      if log.due(step - 2, step):
+        log.progress(step)
+  err = capsys.readouterr().err
+  assert "\r" not in err and "it/s" not in err  # no tqdm bar
+  lines = [line.split(",")[0] for line in err.splitlines() if ": step " in line]
+  assert lines == [f"pendulum-swingup: step {s}/600 ({100 * s / 600:.0f} %)"
+                   for s in (6, 10, 16, 20)]
+
+
+def test_a_resumed_log_drops_the_rows_past_its_checkpoint_and_carries_wall_time(tmp_path,
+                                                                               capsys):
+  # A killed run logs episodes after its last checkpoint; resumed from that
+  # checkpoint, `step` went backwards (…, 377, 375, 501), `wall_s` restarted at 0
+  # and the killed process was missing from the summary's segments.
+  cfg = loop.TrainConfig(steps=600, out_dir=str(tmp_path), **CFG)
+  specs = cfg.agents()
+  with runlog.RunLog(cfg, specs, None, 0, resume=False, progress=False) as log:
+    for step in (100, 200, 300):
+      log.episode(step, 0, float(step), 10.0 * step / 100, {})
+    log.checkpointed(200)   # the last checkpoint before the kill: step 200
+  segments = runlog.read_json(str(tmp_path / runlog.SEGMENTS))
+  assert [(s["start"], s["steps"]) for s in segments] == [(0, 200)]
+  killed_wall = segments[0]["wall_s"]
+  with runlog.RunLog(cfg, specs, None, 200, resume=True, progress=False) as log:
+    assert "dropped the log rows past step 200" in capsys.readouterr().err
+    log.episode(250, 0, 1.0, 2.0, {})
+    log.checkpointed(250)
+    assert [(s["start"], s["steps"]) for s in log.segments(250)] == [(0, 200), (200, 250)]
+  with open(tmp_path / "log.csv") as f:
+    rows = list(csv.DictReader(f))
+  assert [int(r["step"]) for r in rows] == [100, 200, 250]
+  assert float(rows[-1]["wall_s"]) == pytest.approx(killed_wall + 2.0, abs=0.01)
+  assert [(s["start"], s["steps"]) for s in runlog.read_json(
+      str(tmp_path / runlog.SEGMENTS))] == [(0, 200), (200, 250)]
 
 
 def test_learning_curve_shows_a_single_point(tmp_path):
@@ -414,12 +434,12 @@ def test_train_command_reports_progress_every_2_percent(tmp_path, monkeypatch):
   import dmcr_jax.train.__main__ as cli
   seen = {}
 
-  def fake_train(cfg, **kwargs):
-    seen["cfg"] = cfg
+  def fake_train(plan, **kwargs):
+    seen["plan"] = plan
     return {"interrupted": False}
   monkeypatch.setattr(cli, "train", fake_train)
   cli.main(["--steps", "600", "--out", str(tmp_path / "run")])
-  assert seen["cfg"].log_every == 12  # not the default 1,000 (> the run)
+  assert seen["plan"].cfg.log_every == 12  # not the default 1,000 (> the run)
 
 
 def test_egl_devices_reach_the_env_and_survive_config_json(monkeypatch, tmp_path):

@@ -15,12 +15,15 @@ Arguments are checked before anything is compiled. Outputs go to `--out`
 orbax checkpoints; `--resume` continues from the latest checkpoint (see
 `dmcr_jax.train.loop` for what is restored: agents, step and RNG key, not the buffers).
 
+Where things run is resolved once per run (`dmcr_jax.train.config.resolve`):
 `--renderer jax` renders with the JAX ray caster on the device; with the physics
-on the device too (`--physics device`) training runs in chunks of `--chunk-steps`
-vector steps, each one XLA call (`dmcr_jax.train.device_loop`). `--physics auto` (the
-default) steps small batches' physics on the host CPU, beside the learner's
-updates on the accelerator (`dmcr_jax.train.loop`). `--quality` and `--workers` belong to
-the default CPU render pool (`--renderer pool`).
+on the device too (`--physics device`, or `auto` past 64 envs) training runs in
+chunks of `--chunk-steps` vector steps, each one XLA call (the device driver,
+`dmcr_jax.train.device_loop`). `--physics auto` (the default) steps small batches'
+physics on the host CPU in `--physics-workers` processes, beside the learner's
+updates on the accelerator (the host driver, `dmcr_jax.train.loop`). `--quality`,
+`--workers` and `--egl-devices` belong to the default CPU render pool
+(`--renderer pool`).
 
 `--aug` also takes your own augmentation as `package.module:function` (e.g.
 `examples.augmentations:hue_rotation+drq`, a function of ONE uint8 sample, see
@@ -43,9 +46,12 @@ import json
 import os
 import sys
 
-from dmcr_jax.train.loop import (AGENT_LOOPS, CPU_PHYSICS_MAX_ENVS, PHYSICS, PHYSICS_WORKERS_MAX,
-                        RENDERERS, RESUMABLE, TrainConfig, check_config, egl_devices_arg,
-                        load_config, progress_every, train)
+from dmcr_jax.checks import positive_int
+from dmcr_jax.train.config import (AGENT_LOOPS, CPU_PHYSICS_MAX_ENVS, PHYSICS,
+                                   PHYSICS_WORKERS_MAX, RENDERERS, RESUMABLE, TrainConfig,
+                                   egl_devices_arg, load_config, resolve)
+from dmcr_jax.train.loop import train
+from dmcr_jax.train.runlog import progress_every
 from dmcr_jax.train.sac import ALGOS, COMPUTE_DTYPES, SACConfig
 
 
@@ -79,8 +85,8 @@ def build_parser() -> argparse.ArgumentParser:
   p.add_argument("--steps", type=int, default=d.steps,
                  help="training steps (transitions) per agent; with --resume, a larger "
                       "value extends the run")
-  p.add_argument("--seeds", default=",".join(map(str, d.seeds)),
-                 help="comma-separated: one agent per seed")
+  p.add_argument("--seeds", type=seeds_arg, default=",".join(map(str, d.seeds)),
+                 metavar="S[,S…]", help="comma-separated ints: one agent per seed")
   p.add_argument("--num-envs", type=int, default=d.num_envs, help="envs per agent")
   p.add_argument("--visual-seeds", default=str(d.visual_seeds),
                  help="an int (fixed look, 0 = dm_control's) or levels:<n>[,<n>...] "
@@ -102,21 +108,23 @@ def build_parser() -> argparse.ArgumentParser:
   p.add_argument("--image-size", type=int, default=None,
                  help="rendered side (default: 84; 100 for curl)")
   p.add_argument("--renderer", default=d.renderer, metavar="{" + ",".join(RENDERERS) + "}",
-                 help="pool (MuJoCo in CPU workers) or jax (the JAX ray caster on the "
-                      "device)")
+                 help="where frames are drawn: pool (MuJoCo in CPU worker processes, "
+                      "dm_control's exact look; on a host with a spare GPU, --egl-devices "
+                      "keeps its frames off the learner's) or jax (the JAX ray caster on "
+                      "the learner's device: the faster training on one GPU, "
+                      "benchmarks/results/README.md)")
   p.add_argument("--physics", default=d.physics, choices=PHYSICS,
-                 help="where the physics steps: auto (the host CPU for at most "
-                      f"{CPU_PHYSICS_MAX_ENVS} envs in all when the learner runs on "
-                      "an accelerator, else the device), cpu or device")
-  p.add_argument("--env-groups", type=int, default=d.env_groups,
-                 help="host driver: step each agent's envs in this many groups, one "
-                      "group per training step, so one group's physics and pixels are "
-                      "computed while the accelerator updates (must divide --num-envs)")
+                 help="where the physics steps: auto (the host CPU, in --physics-workers "
+                      f"processes, for at most {CPU_PHYSICS_MAX_ENVS} envs in all when the "
+                      "learner runs on an accelerator, which there trains faster than "
+                      "physics on the accelerator; else the device, where --renderer jax "
+                      "runs --chunk-steps of training as one XLA call), cpu or device")
   p.add_argument("--physics-workers", type=int, default=d.physics_workers,
                  help="with the physics on the host CPU (--physics auto on an "
                       "accelerator, or cpu): processes that step it, each a slice of the "
                       "envs (0: in the training process; default: half the cores, at most "
-                      f"{PHYSICS_WORKERS_MAX}, when the learner is on an accelerator, else 0)")
+                      f"{PHYSICS_WORKERS_MAX}, when the learner is on an accelerator, where "
+                      "they pay; else 0)")
   p.add_argument("--chunk-steps", type=int, default=d.chunk_steps,
                  help="--renderer jax with the physics on the device: vector steps per "
                       "device call")
@@ -159,7 +167,7 @@ FLAG_FIELDS = {
     "buffer_capacity": lambda c: c.buffer_capacity, "batch_size": lambda c: c.sac.batch_size,
     "image_size": lambda c: c.image_size, "renderer": lambda c: c.renderer,
     "chunk_steps": lambda c: c.chunk_steps, "physics": lambda c: c.physics,
-    "env_groups": lambda c: c.env_groups, "physics_workers": lambda c: c.physics_workers,
+    "physics_workers": lambda c: c.physics_workers,
     "quality": lambda c: c.quality,
     "workers": lambda c: c.workers, "egl_devices": lambda c: c.egl_devices,
     "dtype": lambda c: c.sac.compute_dtype,
@@ -176,11 +184,29 @@ def explicit_flags(argv) -> set[str]:
   return set(vars(q.parse_args(argv)))
 
 
+def seeds_arg(text: str) -> tuple[int, ...]:
+  """A command line's `--seeds` ("0", "0,1,2") as a tuple of ints (an argparse
+  type: a bad value is reported as the flag's error, naming the form)."""
+  parts = [p.strip() for p in text.split(",")]
+  if not all(p.lstrip("+-").isdigit() for p in parts):
+    raise argparse.ArgumentTypeError(
+        f"want distinct ints in [0, 2**31) separated by commas, e.g. 0,1,2; got {text!r}")
+  return tuple(int(p) for p in parts)
+
+
 def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
+  """The command line's `TrainConfig` (checked; a resumed run's from its
+  config.json) and the parsed arguments, whose `plan` is the config resolved
+  (`dmcr_jax.train.config.resolve`, once). A bad argument ends the process with
+  argparse's error."""
   p = build_parser()
   a = p.parse_args(argv)
   try:
-    seeds = tuple(int(x) for x in a.seeds.split(","))
+    if a.algo == "curl" and a.aug not in (None, "none"):
+      raise ValueError(f"--algo curl takes no --aug (got {a.aug!r}): CURL trains on its "
+                       "own random crops of a larger render (--image-size, default 100, "
+                       "cropped to 84); drop --aug, or use --algo sac_aug with it")
+    seeds = a.seeds
     lr = a.lr
     if lr is None and a.algo == "curl" and a.task.startswith("cheetah"):
       lr = 2e-4
@@ -198,12 +224,15 @@ def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
                       log_every=a.log_every,
                       checkpoint_every=a.checkpoint_every, agent_loop=a.agent_loop,
                       renderer=a.renderer, chunk_steps=a.chunk_steps, physics=a.physics,
-                      env_groups=a.env_groups, physics_workers=a.physics_workers,
+                      physics_workers=a.physics_workers,
                       out_dir=a.out or default_out(a.task, sac_cfg),
                       sac=sac_cfg)
     if a.resume:
       cfg = resumed_config(cfg, explicit_flags(argv))
-    check_config(cfg)
+    # Progress at least every 2 % of the run, whatever --log-every says.
+    positive_int("log_every", cfg.log_every)
+    cfg = dataclasses.replace(cfg, log_every=progress_every(cfg))
+    a.plan = resolve(cfg)
     check_own_augmentations(cfg)
   except (ValueError, FileNotFoundError) as e:
     p.error(str(e))
@@ -267,11 +296,11 @@ def default_out(task: str, sac_cfg: SACConfig) -> str:
 
 
 def main(argv=None) -> None:
-  cfg, a = parse(argv)
-  # Progress at least every 2 % of the run, whatever --log-every says.
-  cfg = dataclasses.replace(cfg, log_every=progress_every(cfg))
+  """`dmcr-train`: parses the command line, trains, prints the summary as JSON
+  (exit status 130 when interrupted)."""
+  _, a = parse(argv)
   try:
-    summary = train(cfg, resume=a.resume, progress=not a.no_progress)
+    summary = train(a.plan, resume=a.resume, progress=not a.no_progress)
   except (ValueError, FileExistsError, FileNotFoundError) as e:
     sys.exit(f"train: error: {e}")
   print(json.dumps(summary, indent=1))

@@ -33,7 +33,7 @@ import time
 import numpy as np
 
 from dmcr_jax.train import evaluate as ev
-from dmcr_jax.train import loop, sac
+from dmcr_jax.train import config, loop, sac
 
 DEMO_SAC = sac.SACConfig(batch_size=32, hidden_dim=256, conv_channels=8)
 """The demo's learner: SAC+AUG with DrQ as in the paper, but batch 32 (paper: 256),
@@ -77,11 +77,11 @@ class Demo:
   eval_states: int = 1
   seed: int = 0
 
-  def train_config(self, out: str) -> loop.TrainConfig:
+  def train_config(self, out: str) -> config.TrainConfig:
     """The `TrainConfig` of the demo's run in `<out>/run` (JAX renderer, one
     checkpoint at the end)."""
     warmup = min(500, self.steps // 4) if self.warmup_steps is None else self.warmup_steps
-    return loop.TrainConfig(
+    return config.TrainConfig(
         task=self.task, steps=self.steps, seeds=(self.seed,), num_envs=self.num_envs,
         action_repeat=self.action_repeat, visual_seeds=f"levels:{self.train_looks}",
         vary=self.vary, warmup_steps=warmup,
@@ -96,18 +96,20 @@ class Demo:
                          train_episodes=n, seed=self.seed, renderer="jax")
 
 
-def check(demo: Demo, out: str) -> None:
-  """ValueError naming the problem (a bad setting, or `out` already holding a demo
-  run), before anything is created or compiled."""
+def check(demo: Demo, out: str) -> config.Plan:
+  """The demo's training run resolved (`dmcr_jax.train.config.resolve`, its one
+  check); ValueError naming the problem (a bad setting, or `out` already holding
+  a demo run), before anything is created or compiled."""
   from dmcr_jax.checks import positive_int
   for name in ("steps", "train_looks", "eval_looks", "eval_states"):
     positive_int(name, getattr(demo, name))
   cfg = demo.train_config(out)
-  loop.check_config(cfg)
+  plan = config.resolve(cfg)
   ev.check_eval_config(demo.eval_config(), demo.task)
   if ev.checkpoint_steps(cfg.out_dir):
     raise ValueError(f"{out!r} already holds a demo run ({cfg.out_dir}/checkpoints); "
                      "choose another --out or delete that folder")
+  return plan
 
 
 def seed_grid(demo: Demo, path: str) -> np.ndarray:
@@ -136,13 +138,15 @@ def full_size_commands(task: str) -> list[str]:
           f"--out {run}-levels10   # few-shot looks, as this demo"]
 
 
-def run(demo: Demo = Demo(), out: str = "dmcr_demo", progress: bool = True) -> dict:
+def run(demo: Demo = Demo(), out: str = "dmcr_demo", progress: bool = True,
+        plan: config.Plan | None = None) -> dict:
   """Runs the demo; returns what it wrote and measured.
 
   Args:
     demo: the settings.
     out: the output folder (created).
     progress: progress bars (else progress lines on stderr).
+    plan: `check(demo, out)` when already made (None: made here).
 
   Returns:
     dict: files (name → path), train (`dmcr_jax.train.loop.train`'s summary), eval
@@ -153,9 +157,9 @@ def run(demo: Demo = Demo(), out: str = "dmcr_demo", progress: bool = True) -> d
     ValueError: a bad setting, or `out` already holds a demo run (nothing is
       created then).
   """
-  check(demo, out)
+  plan = plan or check(demo, out)
   t0 = time.perf_counter()
-  cfg = demo.train_config(out)
+  cfg = plan.cfg
   os.makedirs(out, exist_ok=True)
   files = {}
   say = lambda *a: print(*a, flush=True)
@@ -173,7 +177,7 @@ def run(demo: Demo = Demo(), out: str = "dmcr_demo", progress: bool = True) -> d
   say(f"[2/3] training SAC+AUG (drq) on {demo.task}: {demo.steps:,} steps, "
       f"{demo.num_envs} envs, {cfg.image_size}x{cfg.image_size} pixels from the JAX "
       f"ray caster")
-  summary = loop.train(cfg, progress=progress)
+  summary = loop.train(plan, progress=progress)
   files["learning curve"] = os.path.join(cfg.out_dir, "learning_curve.png")
   files["training log"] = os.path.join(cfg.out_dir, "log.csv")
 
@@ -259,11 +263,11 @@ def main(argv=None) -> None:
   a = p.parse_args(argv)
   demo = Demo(task=a.task, steps=a.steps)
   try:
-    check(demo, a.out)
+    plan = check(demo, a.out)
   except ValueError as e:
     p.error(str(e))
   try:
-    result = run(demo, a.out, progress=not a.no_progress)
+    result = run(demo, a.out, progress=not a.no_progress, plan=plan)
   except (ValueError, FileExistsError, FileNotFoundError) as e:
     sys.exit(f"dmcr-demo: error: {e}")
   print(report(demo, result))

@@ -1,28 +1,24 @@
 """The device driver: with the JAX renderer, a chunk of training is one XLA call.
 
-`dmcr_jax.train.loop.train` hands a run here when `TrainConfig.renderer` is "jax" and the
-physics steps on the learner's device (`TrainConfig.physics_device`). The env is
+`dmcr_jax.train.loop.train` runs a plan with this stepper when its renderer is
+the ray caster and the physics steps on the learner's device
+(`dmcr_jax.train.config.Plan.device_driver`). The env is
 `dmcr_jax.make(..., renderer="jax")`, whose pure functional core
 (`dmcr_jax.jax_env.PixelEnv`) steps the physics, ray-casts the frames and stacks
 them on the device. A chunk of `TrainConfig.chunk_steps` vector steps of all K·N
-envs is one jitted `lax.scan` of `dmcr_jax.train.step`'s training step (act, learn, env
-step, store) — the functions the host driver (`dmcr_jax.train.loop`) calls, with the
-same RNG stream: given the same frames, both drivers train the same agents, up to
-float32 rounding
-(`tests/test_train.py`). The update count owed and whether the buffers can be
-sampled are kept in the scan's carry (`dmcr_jax.train.step.owed_updates`, `can_sample`);
-the number of update pairs of a step is dynamic (a loop of that many pairs).
+envs is one jitted `lax.scan` of `dmcr_jax.train.step`'s training step (act,
+learn, env step, store) — the functions the host driver calls, with the same RNG
+stream: given the same frames, both drivers train the same agents, up to float32
+rounding (`tests/test_train.py`). The update count owed and whether the buffers
+can be sampled are kept in the scan's carry (`dmcr_jax.train.step.owed_updates`,
+`can_sample`); the number of update pairs of a step is dynamic (a loop of that
+many pairs).
 
-Between chunks the host writes the finished episodes to log.csv (each with the
-metrics of the latest updates at its step), moves the progress bar, saves
-checkpoints (at the first chunk end at or past each `checkpoint_every`) and
-checks the stop flag (SIGINT/SIGTERM); configuration, the log, checkpoints,
-resume (agents, step and key; not the buffers) and the summary are `dmcr_jax.train.loop`'s.
-The run's last chunk is shortened to end at `steps` (one more compilation when
-`steps` is not a multiple of `chunk_steps × num_envs`).
-
-Limits: the whole run lives on one device (the agent axis is not sharded over
-several, unlike the host driver's `shard_map`).
+`device_steps` yields one report per chunk (the host driver's form), so the
+log, checkpoints and the stop flag are handled between chunks by `train`. The
+run's last chunk is shortened to end at `steps` (one more compilation when
+`steps` is not a multiple of `chunk_steps × num_envs`). The whole run lives on
+one device (the agent axis is not sharded over several).
 """
 
 from __future__ import annotations
@@ -35,9 +31,7 @@ import numpy as np
 from flax import struct
 
 from dmcr_jax import jax_env
-from dmcr_jax.train import loop
 from dmcr_jax.train import step as train_step
-from dmcr_jax.train.loop import TrainConfig
 
 
 @struct.dataclass
@@ -85,45 +79,36 @@ _chunk_jit = jax.jit(_chunk, static_argnames=("spec", "length"))
 _chunk_donated = jax.jit(_chunk, static_argnames=("spec", "length"), donate_argnums=(1,))
 
 
-def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict:
-  """`loop.train` for the JAX renderer with the physics on the learner's device
-  (same arguments, outputs and errors)."""
-  manager = loop.open_run(cfg, resume)
-  n = cfg.num_envs
-  env = loop.make_env(cfg, obs_on_device=True)
-  on_cpu = jax.default_backend() == "cpu"
-  spec = loop.step_spec(cfg, env)
-  agents, buffers, key, start = loop.initial_state(
-      cfg, manager, resume, env.single_observation_space.shape, env.task.action_size)
+def device_steps(plan, env, learner: train_step.Learner, spec: train_step.StepSpec,
+                 start: int, first_update: int):
+  """The device driver: yields (step before, step after, finished episodes, learner)
+  after every chunk until `steps` (episodes: (step, agent, return, the update
+  metrics at its step) each), as `dmcr_jax.train.loop.host_steps` does per step.
+
+  Args:
+    plan: the run's `dmcr_jax.train.config.Plan`.
+    env: its `dmcr_jax.make(..., renderer="jax", obs_on_device=True)` env.
+    learner: the `Learner` at step `start`.
+    spec: the `StepSpec`.
+    start: the first step (a resumed run's checkpoint).
+    first_update: transitions per agent before which no update is owed.
+  """
+  cfg, n = plan.cfg, plan.cfg.num_envs
   env.reset(seed=int(cfg.seeds[0]) + start)
-  carry = Carry(learner=train_step.init_learner(agents, buffers, key, start, spec),
-                env=env.pixel_state, owed=jnp.zeros((), jnp.float32),
+  carry = Carry(learner=learner, env=env.pixel_state, owed=jnp.zeros((), jnp.float32),
                 ready=jnp.zeros((), bool),
-                updates_from=jnp.asarray(loop.updates_from(cfg, start), jnp.int32))
+                updates_from=jnp.asarray(first_update, jnp.int32))
   # Committed to one device, as restored checkpoints are: fresh and resumed runs
   # then share one compilation (committed and uncommitted inputs do not).
   carry = jax.device_put(carry, jax.devices()[0])
-  chunk_fn = _chunk_jit if on_cpu else _chunk_donated
-  log = loop.RunLog(cfg, start, resume, progress)
+  chunk_fn = _chunk_jit if jax.default_backend() == "cpu" else _chunk_donated
   step = start
-  try:
-    while step < cfg.steps and not log.stopped:
-      length = min(cfg.chunk_steps, math.ceil((cfg.steps - step) / n))
-      carry, out = chunk_fn(env.functional, carry, spec=spec, length=length)
-      out = jax.device_get(out)
-      before, step = step, int(out["step"][-1])
-      wall = log.wall()
-      for s, i in zip(*np.nonzero(out["truncated"])):
-        metrics = {name: v[s] for name, v in out["metrics"].items()}
-        log.episode(int(out["step"][s]), int(i // n), float(out["episode_return"][s, i]),
-                    wall, metrics)
-      if log.due(before, step):
-        log.progress(step)
-      if loop.crossed(cfg.checkpoint_every, before, step):
-        loop._save(manager, step, carry.learner.agents, carry.learner.key)
-    if manager.latest_step() != step:
-      loop._save(manager, step, carry.learner.agents, carry.learner.key)
-  finally:
-    log.close()
-    env.close()
-  return loop.finish(cfg, step, log)
+  while step < cfg.steps:
+    length = min(cfg.chunk_steps, math.ceil((cfg.steps - step) / n))
+    carry, out = chunk_fn(env.functional, carry, spec=spec, length=length)
+    out = jax.device_get(out)
+    before, step = step, int(out["step"][-1])
+    episodes = [(int(out["step"][s]), int(i // n), float(out["episode_return"][s, i]),
+                 {name: v[s] for name, v in out["metrics"].items()})
+                for s, i in zip(*np.nonzero(out["truncated"]))]
+    yield before, step, episodes, carry.learner

@@ -54,8 +54,7 @@ class ReplayBuffer:
   Row t of env n (one slot of its ring) holds the newest frame of an
   observation, the action taken from it, the reward that followed and whether
   the frame starts an episode. Each env's ring has its own write position and
-  count: the k-th row `add` writes for env n goes to its slot k mod T (a driver
-  that steps its envs in groups writes a group at a time).
+  count: the k-th row `add` writes for env n goes to its slot k mod T.
 
   Attributes:
     frames: uint8 (N, T, H, W, C), each frame stored once.
@@ -137,9 +136,8 @@ def _check(name: str, x, shape: tuple[int, ...]) -> None:
 
 
 def add(buffer: ReplayBuffer, frame: jax.Array, first: jax.Array, action: jax.Array,
-        reward: jax.Array, first_env: int = 0) -> ReplayBuffer:
-  """Appends one agent step of envs `first_env` … `first_env + G − 1` (jittable;
-  donate `buffer`); G = N by default (every env).
+        reward: jax.Array) -> ReplayBuffer:
+  """Appends one agent step of every env (jittable; donate `buffer`).
 
   Call it after each ``env.step(action)`` with the PREVIOUS observation's data:
   ``add(buf, obs[..., -C:], info["episode_step"] == 0, action, reward)``. The
@@ -149,42 +147,34 @@ def add(buffer: ReplayBuffer, frame: jax.Array, first: jax.Array, action: jax.Ar
 
   Args:
     buffer: the buffer.
-    frame: uint8 (G, H, W, C), the newest frame of each env's observation.
-    first: bool (G,), the observation is an episode's first (its stack is that
+    frame: uint8 (N, H, W, C), the newest frame of each env's observation.
+    first: bool (N,), the observation is an episode's first (its stack is that
       frame repeated).
-    action: (G, A), the action taken from the observation (stored as float32).
-    reward: (G,), the reward the env returned for it (stored as float32).
-    first_env: static int, the ring of the first of the G envs.
+    action: (N, A), the action taken from the observation (stored as float32).
+    reward: (N,), the reward the env returned for it (stored as float32).
 
   Returns:
     The buffer with each env's step written at its `pos`, overwriting its oldest
     row once its ring is full.
 
   Raises:
-    ValueError/TypeError (at trace time): wrong shapes, envs past N, or a frame
-    not uint8.
+    ValueError/TypeError (at trace time): wrong shapes or a frame not uint8.
   """
   n, t, h, w, c = buffer.frames.shape
-  g = jnp.shape(first)[0] if jnp.ndim(first) else 0
-  if not 0 <= first_env or first_env + g > n:
-    raise ValueError(f"envs {first_env}…{first_env + g - 1} are not among the buffer's "
-                     f"{n} envs")
-  _check("frame", frame, (g, h, w, c))
-  _check("first", first, (g,))
-  _check("action", action, (g, buffer.action.shape[-1]))
-  _check("reward", reward, (g,))
+  _check("frame", frame, (n, h, w, c))
+  _check("first", first, (n,))
+  _check("action", action, (n, buffer.action.shape[-1]))
+  _check("reward", reward, (n,))
   if jnp.result_type(frame) != jnp.uint8:
     raise TypeError(f"frame must be uint8, got {jnp.result_type(frame)}")
-  envs = slice(first_env, first_env + g)
-  rows = jnp.arange(first_env, first_env + g)
-  pos = buffer.pos[envs]
+  rows, pos = jnp.arange(n), buffer.pos
   return buffer.replace(
       frames=buffer.frames.at[rows, pos].set(frame),
       action=buffer.action.at[rows, pos].set(jnp.asarray(action, jnp.float32)),
       reward=buffer.reward.at[rows, pos].set(jnp.asarray(reward, jnp.float32)),
       first=buffer.first.at[rows, pos].set(jnp.asarray(first, bool)),
-      pos=buffer.pos.at[envs].set((pos + 1) % t),
-      count=buffer.count.at[envs].set(jnp.minimum(buffer.count[envs] + 1, t)))
+      pos=(pos + 1) % t,
+      count=jnp.minimum(buffer.count + 1, t))
 
 
 def valid_mask(buffer: ReplayBuffer) -> jax.Array:

@@ -16,14 +16,6 @@ this order:
 4. `store`: the transition (the newest frame of the observation acted on, its
    episode-start flag, the action, the reward) into every agent's buffer.
 
-Env groups (`StepSpec.env_groups` = G): the host driver may step each agent's
-N envs as G groups of N/G, one group per training step, so that while one
-group's physics and pixels are computed on the host the others' are already
-done and the accelerator runs the updates (Sample Factory's double-buffered
-sampling, for G = 2). A step then acts on, owes updates for and stores the
-transitions of one group (`store`'s `group`); with G = 1 a step is the vector
-step above.
-
 The state between steps is one `Learner` (a frozen pytree). Its key is split by
 `act` and by `learn`, every step, whether or not updates run, so one seed gives
 one RNG stream whichever driver runs the step.
@@ -87,7 +79,6 @@ class StepSpec:
     sac: the learner's hyperparameters.
     agent_loop: "vmap" or "map" (module doc).
     low, high: the env's action bounds (policy actions in [−1, 1] map onto them).
-    env_groups: G, the groups a step's envs come in (module doc); divides N.
   """
   agents: int
   num_envs: int
@@ -97,12 +88,6 @@ class StepSpec:
   agent_loop: str
   low: tuple
   high: tuple
-  env_groups: int = 1
-
-  @property
-  def step_envs(self) -> int:
-    """Envs per agent in one training step: N / G."""
-    return self.num_envs // self.env_groups
 
 
 def _agent_parallel(fn, mesh):
@@ -138,15 +123,15 @@ def act(learner: Learner, obs: jax.Array, spec: StepSpec, mesh=None):
 
   Args:
     learner: the `Learner`.
-    obs: uint8 (K·n, H, W, C) observations of the step's envs (n = N / G).
+    obs: uint8 (K·N, H, W, C) observations of the envs.
     spec: the `StepSpec`.
     mesh: a device mesh over the agent axis, or None.
 
   Returns:
-    (learner with its key and step count advanced, actions in [−1, 1] (K, n, A)
-    for the buffer, the same in the env's bounds (K·n, A) for the env).
+    (learner with its key and step count advanced, actions in [−1, 1] (K, N, A)
+    for the buffer, the same in the env's bounds (K·N, A) for the env).
   """
-  k, n = spec.agents, spec.step_envs
+  k, n = spec.agents, spec.num_envs
   key, k_act = jax.random.split(learner.key)
   obs = obs.reshape((k, n) + obs.shape[1:])
   # The warm-up flag travels with the agent axis, so `shard_map` splits it too.
@@ -164,12 +149,12 @@ def _first_update(spec: StepSpec, updates_from):
 
 
 def owed_updates(owed, step, spec: StepSpec, xp=np, updates_from=None):
-  """Updates owed once the N / G transitions of the step at `step` are collected.
+  """Updates owed once the N transitions of the step at `step` are collected.
 
   Args:
     owed: updates owed and not yet run (float32).
     step: transitions per agent acted on before this step.
-    spec: the `StepSpec` (N / G, warm-up, utd).
+    spec: the `StepSpec` (N, warm-up, utd).
     xp: `numpy` (a host driver's counters) or `jax.numpy` (traced).
     updates_from: transitions per agent before which no update is owed (None:
       `spec.warmup_steps`). A resumed run passes its first step plus the
@@ -179,7 +164,7 @@ def owed_updates(owed, step, spec: StepSpec, xp=np, updates_from=None):
     (owed including this step's, update pairs that can run now: ⌊owed / 2⌋).
   """
   start = _first_update(spec, updates_from)
-  after = step + spec.step_envs
+  after = step + spec.num_envs
   new = spec.utd * (after - xp.maximum(step, start))
   owed = xp.where(after > start, owed + xp.float32(new), owed)
   return xp.float32(owed), xp.floor(owed / 2).astype(xp.int32)
@@ -206,7 +191,7 @@ def plan_updates(owed, ready, step, can_sample_now, spec: StepSpec, xp=np,
   """
   owed, pairs = owed_updates(owed, step, spec, xp, updates_from)
   start = _first_update(spec, updates_from)
-  learning = step + spec.step_envs > start
+  learning = step + spec.num_envs > start
   if xp is np:
     ready = ready or (learning and bool(can_sample_now()))
   else:
@@ -310,27 +295,24 @@ def learn(learner: Learner, pairs, spec: StepSpec, mesh=None, unroll: bool = Fal
 
 
 def store(learner: Learner, obs: jax.Array, first: jax.Array, action: jax.Array,
-          reward: jax.Array, spec: StepSpec, mesh=None, group: int = 0) -> Learner:
-  """Step 4 (module doc): one transition per env of a group into its agent's
-  buffer.
+          reward: jax.Array, spec: StepSpec, mesh=None) -> Learner:
+  """Step 4 (module doc): one transition per env into its agent's buffer.
 
   Args:
     learner: the `Learner`.
-    obs: uint8 (K·n, H, W, 3·stack), the observations acted on (their newest
-      frame is stored); n = N / G, agent k's envs first.
-    first: bool (K·n,), that observation began an episode.
-    action: (K, n, A) the actions taken (in [−1, 1], as `act` returned them).
-    reward: float32 (K·n,) the rewards that followed.
+    obs: uint8 (K·N, H, W, 3·stack), the observations acted on (their newest
+      frame is stored), agent k's envs first.
+    first: bool (K·N,), that observation began an episode.
+    action: (K, N, A) the actions taken (in [−1, 1], as `act` returned them).
+    reward: float32 (K·N,) the rewards that followed.
     spec, mesh: as for `act`.
-    group: static, the env group (its envs are rings group·n … of each buffer).
 
   Returns:
     The learner with its buffers holding the transitions.
   """
-  k, n = spec.agents, spec.step_envs
+  k, n = spec.agents, spec.num_envs
   per_agent = lambda x: x.reshape((k, n) + x.shape[1:])
-  add = _agent_parallel(
-      jax.vmap(lambda *args: replay.add(*args, first_env=group * n)), mesh)
+  add = _agent_parallel(jax.vmap(replay.add), mesh)
   buffers = add(learner.buffers, per_agent(obs[..., -3:]), per_agent(first), action,
                 per_agent(reward))
   return learner.replace(buffers=buffers)
@@ -353,5 +335,5 @@ _STATIC = ("spec", "mesh")
 act_jit = jax.jit(act, static_argnames=_STATIC)
 learn_jit = jax.jit(learn, static_argnames=_STATIC + ("pairs", "unroll"),
                     donate_argnums=(0,))
-store_jit = jax.jit(store, static_argnames=_STATIC + ("group",), donate_argnums=(0,))
+store_jit = jax.jit(store, static_argnames=_STATIC, donate_argnums=(0,))
 can_sample_jit = jax.jit(can_sample)
