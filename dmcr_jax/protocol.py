@@ -353,7 +353,7 @@ def worst_action(actions: jax.Array, agents: int) -> jax.Array:
 def env_actions(actions: jax.Array, low: np.ndarray, high: np.ndarray) -> jax.Array:
   """Policy actions in [−1, 1] → the task's bounds (float32), as `dmcr_jax.train.step`'s
   `to_env_action`."""
-  low, high = np.asarray(low, np.float32), np.asarray(high, np.float32)
+  low, high = jnp.asarray(low, jnp.float32), jnp.asarray(high, jnp.float32)
   return (low + (actions.astype(jnp.float32) + 1.0) * 0.5 * (high - low)).astype(jnp.float32)
 
 
