@@ -44,6 +44,7 @@ with the same `progress_file` (finished blocks are kept there).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import hashlib
@@ -662,11 +663,12 @@ class Protocol:
     labels = tuple(labels) if labels is not None else tuple(f"agent {i}" for i in range(kk))
     if len(labels) != kk:
       raise ValueError(f"labels must name the {kk} agents, got {len(labels)}")
-    from dmcr_jax import physics_env  # noqa: F401  (heavy imports before timing)
     key = jax.random.fold_in(jax.random.key(self.config["seed"]), POLICY_STREAM)
-    pkey = dict(progress_key or {}, protocol=self.config, block=self.block,
-                params=params_digest(params))
-    done, earlier = (load_progress(progress_file, pkey) if progress_file else ({}, 0.0))
+    pkey, done, earlier = None, {}, 0.0
+    if progress_file:
+      pkey = dict(progress_key or {}, protocol=self.config, block=self.block,
+                  params=params_digest(params))
+      done, earlier = load_progress(progress_file, pkey)
     if done and progress is not None:
       print(f"evaluate: resuming from {progress_file}: {len(done)} of {self.num_blocks} "
             "blocks already done", file=sys.stderr, flush=True)
@@ -729,61 +731,46 @@ class Protocol:
                       self.env_kwargs["frame_stack"], *self.env_kwargs["image_size"],
                       tuple(sorted(self.env_kwargs["render"].items())))
 
+  @contextlib.contextmanager
   def _ray_runner(self, params, key):
     """A context giving `run_block(inputs) -> returns (K·B,)` on the device."""
-    penv = self.pixel_env()
-    fn = _ray_block_jit()
-    proto = self
+    penv, fn = self.pixel_env(), _ray_block_jit()
 
-    class _Ctx:
-      def __enter__(self):
-        def run_block(inputs):
-          returns, worst = fn(penv, params, jnp.asarray(inputs["seeds"]),
-                              jnp.asarray(inputs["masks"]), jnp.asarray(inputs["resets"]),
-                              jnp.asarray(inputs["index"]), key, policy=proto.policy,
-                              agents=proto.agents, steps=proto.episode_length)
-          check_actions(np.asarray(worst))
-          return np.asarray(returns, np.float64)
-        return run_block
+    def run_block(inputs):
+      returns, worst = fn(penv, params, jnp.asarray(inputs["seeds"]),
+                          jnp.asarray(inputs["masks"]), jnp.asarray(inputs["resets"]),
+                          jnp.asarray(inputs["index"]), key, policy=self.policy,
+                          agents=self.agents, steps=self.episode_length)
+      check_actions(np.asarray(worst))
+      return np.asarray(returns, np.float64)
+    yield run_block
 
-      def __exit__(self, *exc):
-        return False
-    return _Ctx()
-
+  @contextlib.contextmanager
   def _pool_runner(self, params, key):
-    """A context giving `run_block(inputs) -> returns (K·B,)` with the render pool."""
-    proto = self
+    """A context giving `run_block(inputs) -> returns (K·B,)` with the render pool (its
+    workers stop when the context ends)."""
     kw = self.env_kwargs
+    env = MixedLookPool(self.task, num_envs=self.block_envs, frame_skip=kw["frame_skip"],
+                        frame_stack=kw["frame_stack"], image_size=kw["image_size"],
+                        seed=self.config["seed"], **kw["render"])
+    low = np.asarray(env.single_action_space.low, np.float32)
+    high = np.asarray(env.single_action_space.high, np.float32)
 
-    class _Ctx:
-      def __enter__(self):
-        self.env = MixedLookPool(proto.task, num_envs=proto.block_envs,
-                                 frame_skip=kw["frame_skip"], frame_stack=kw["frame_stack"],
-                                 image_size=kw["image_size"], seed=proto.config["seed"],
-                                 **kw["render"])
-        env = self.env
-        low = np.asarray(env.single_action_space.low, np.float32)
-        high = np.asarray(env.single_action_space.high, np.float32)
-
-        def run_block(inputs):
-          env.set_looks(inputs["seeds"], [proto.plan.varies[i] for i in inputs["vary_index"]])
-          obs, _ = env.reset(seed=inputs["resets"])
-          index = jnp.asarray(inputs["index"])
-          for t in range(env.episode_length):
-            actions, worst = _pool_act(params, obs, index, np.int32(t), key, low, high,
-                                       policy=proto.policy, agents=proto.agents)
-            check_actions(np.asarray(worst))
-            obs, _, _, truncated, info = env.step(np.asarray(actions))
-          if not truncated.all():
-            raise RuntimeError("episodes did not all end together; the env's episode "
-                               "length is off")
-          return np.asarray(info["episode_return"], np.float64)
-        return run_block
-
-      def __exit__(self, *exc):
-        self.env.close()
-        return False
-    return _Ctx()
+    def run_block(inputs):
+      env.set_looks(inputs["seeds"], [self.plan.varies[i] for i in inputs["vary_index"]])
+      obs, _ = env.reset(seed=inputs["resets"])
+      index = jnp.asarray(inputs["index"])
+      for t in range(env.episode_length):
+        actions, worst = _pool_act(params, obs, index, np.int32(t), key, low, high,
+                                   policy=self.policy, agents=self.agents)
+        check_actions(np.asarray(worst))
+        obs, _, _, truncated, info = env.step(np.asarray(actions))
+      if not truncated.all():
+        raise RuntimeError("episodes did not all end together; the env's episode length "
+                           "is off")
+      return np.asarray(info["episode_return"], np.float64)
+    with env:
+      yield run_block
 
 
 def check_actions(worst: np.ndarray) -> None:
@@ -825,6 +812,7 @@ def _pixel_env(task: str, num_envs: int, frame_skip: int, frame_stack: int, heig
       render_chunk=chunk, render_kernel=JR.use_kernel(opts.get("render_kernel", False)))
 
 
+@functools.cache
 def _mixed_pool_class():
   from dmcr_jax.env import PixelVectorEnv
   from dmcr_jax.visuals import render_model as rmod

@@ -249,3 +249,36 @@ def test_the_report_files_hold_the_returns_and_e_g(tmp_path):
   assert "| theirs | 0.0 | 5.0 | 1.0 | – |" in table
   assert "| policy | train | none | all |" in table
   assert os.path.getsize(tmp_path / "eval.png") > 0
+
+
+@pytest.mark.slow
+def test_the_worked_example_evaluates_a_scripted_policy_reproducibly(tmp_path):
+  from examples import evaluate_own_policy
+  argv = ["--tiny", "--policy", "random", "--out", str(tmp_path / "a")]
+  first = evaluate_own_policy.main(argv)
+  again = evaluate_own_policy.main(argv[:-1] + [str(tmp_path / "b")])
+  # Random actions from the protocol's keys: the same in every pass.
+  np.testing.assert_array_equal(first.returns["all"], again.returns["all"])
+  saved = json.loads((tmp_path / "a" / "eval.json").read_text())
+  assert saved["agents"][0]["conditions"]["all"]["episodes"] == first.returns["all"][0].tolist()
+
+
+@pytest.mark.slow
+def test_the_benchmark_rows_put_the_protocol_beside_the_env(tmp_path, capsys):
+  from dmcr_jax.benchmarks import evaluate as bench
+  from dmcr_jax.benchmarks import rows as R
+  out = str(tmp_path / "evaluate.jsonl")
+  bench.main(["--task", TASK, "--agents", "1,2", "--visual-seeds", "2", "--dynamics-seeds",
+              "1", "--train-episodes", "2", "--conditions", "none,all", "--image-size", "16",
+              "--action-repeat", "100", "--out", out])
+  rows = R.read(out)
+  assert [r["variant"] for r in rows] == ["JAX env (zero actions)", "protocol K=1",
+                                          "JAX env (zero actions)", "protocol K=2"]
+  for base, r in zip(rows[::2], rows[1::2]):
+    assert base["is_baseline"] and base["n"] == r["n"] == r["block_envs"]
+    assert r["blocks"] == 1 and r["block_envs"] == 4 * r["agents"]  # 2 conditions × 2 looks
+    assert r["agent_steps"] == r["block_envs"] * r["blocks"] * r["episode_length"] == r["n"] * 10
+    assert r["throughput"] == pytest.approx(r["agent_steps"] / r["run_s"])
+    assert r["baseline_throughput"] == base["throughput"]
+    assert r["ratio"] == pytest.approx(r["throughput"] / base["throughput"])
+  assert "| cartpole-balance | jax | protocol K=2 |" in (tmp_path / "evaluate.md").read_text()
