@@ -159,10 +159,12 @@ def markdown(summary: dict) -> str:
   if papers:
     lines += ["", "Paper rows are its Table 4 (five runs; its \"None\" column, shown "
                   "under both train and none)."]
-  lines += ["", "E_G per condition (mean return of each "
-            + ("augmentation's agents per training-look range" if ranges
-               else "augmentation's agents" if len(groups) > 1 else "agent set")
-            + "; paper: from its Table 4 with \"None\" as train):", "",
+  whose = ("policy" if _group_word(summary) == "policy"
+           else "augmentation's agents per training-look range" if ranges
+           else "augmentation's agents" if len(groups) > 1 else "agent set")
+  lines += ["", "E_G per condition (mean return of each " + whose
+            + ("; paper: from its Table 4 with \"None\" as train" if papers else "") + "):",
+            "",
             "| " + " | ".join([_group_word(summary), "train"] + conditions) + " |",
             "|---|" + "---:|" * (len(conditions) + 1)]
   for g in groups:
