@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 
 import dmcr_jax
+from dmcr_jax import protocol
+from dmcr_jax import protocol_report as report
 from dmcr_jax.train import evaluate as ev
 from dmcr_jax.train import loop, sac
 
@@ -64,9 +66,9 @@ def test_held_out_seeds_never_touch_a_training_range():
   assert not ((seeds >= dmcr_jax.TRAIN_SEEDS.start) & (seeds < dmcr_jax.TRAIN_SEEDS.stop)).any()
   np.testing.assert_array_equal(seeds, ev.held_out_seeds(100, seed=0))
   assert not np.array_equal(seeds, ev.held_out_seeds(100, seed=1))
-  ev._check_disjoint(seeds, dmcr_jax.levels(1000))
+  protocol.check_disjoint(seeds, dmcr_jax.levels(1000))
   with pytest.raises(RuntimeError, match="training looks"):
-    ev._check_disjoint(np.array([5, 2**30 + 1]), dmcr_jax.levels(10))
+    protocol.check_disjoint(np.array([5, 2**30 + 1]), dmcr_jax.levels(10))
 
 
 def test_bad_protocols_are_rejected():
@@ -80,6 +82,8 @@ def test_bad_protocols_are_rejected():
     ev.check_eval_config(ev.EvalConfig(renderer="opengl"), "cartpole-balance")
   with pytest.raises(ValueError, match="only to renderer 'pool'"):
     ev.check_eval_config(ev.EvalConfig(renderer="jax", workers=2), "cartpole-balance")
+  with pytest.raises(ValueError, match="max_envs must be a positive int"):
+    ev.check_eval_config(ev.EvalConfig(max_envs=0), "cartpole-balance")
   with pytest.raises(SystemExit):
     ev.main(["/nonexistent/run"])
 
@@ -105,10 +109,10 @@ def test_the_jax_renderer_runs_the_same_protocol(tmp_path, capsys):
     assert np.isfinite(row["conditions"][c]["mean"])
   with open(tmp_path / "eval" / "eval.md") as f:
     assert "rendered by the JAX ray caster" in f.read()
-  # Without a progress bar, a line per condition ("none" is the train look: 2 passes).
+  # Without a progress bar, a line per block ("none" is the train look, so every
+  # episode of both conditions runs in one block).
   lines = [l for l in capsys.readouterr().err.splitlines() if l.startswith("evaluate: ")]
-  assert [l.split(",")[0] for l in lines] == ["evaluate: none done (1/2)",
-                                              "evaluate: all done (2/2)"], lines
+  assert [l.split(",")[0] for l in lines] == ["evaluate: block 1/1 done"], lines
 
 
 @pytest.mark.slow
@@ -140,11 +144,11 @@ def test_protocol_table_arithmetic_and_determinism(run_dir, tmp_path):
   assert os.path.getsize(tmp_path / "a" / "eval.png") > 0
 
   # The same checkpoint and seeds give the same episodes, return for return, with
-  # the agents in another order (each agent's block moves to other envs). Two
-  # agents, as above: the same env and policy sizes, so nothing compiles again.
-  some = ("all",)
-  again = ev.evaluate(run_dir, ev.EvalConfig(**{**TINY.__dict__, "conditions": some}),
-                      out_dir=str(tmp_path / "b"), agents=[1, 0], progress=False)
+  # the agents in another order (each agent's episodes move to other envs). Two
+  # agents and every condition, as above: the same program, nothing compiles again.
+  some = conditions
+  again = ev.evaluate(run_dir, TINY, out_dir=str(tmp_path / "b"), agents=[1, 0],
+                      progress=False)
   for i, a in enumerate((1, 0)):
     assert again["agents"][i]["train"]["episodes"] == first["agents"][a]["train"]["episodes"]
     for c in some:
@@ -205,9 +209,33 @@ def test_episode_video_tiles_the_looks_frame_by_frame(run_dir, tmp_path):
   assert np.asarray(frames[0]).shape[:2] == (32, 256)
 
 
+class FakeBlocks:
+  """Stands in for `Protocol`'s runner: block i's episodes all return `value(i)`; no
+  env is built or stepped (the bookkeeping is under test, not the episodes)."""
+
+  def __init__(self, value=lambda i: 0.0, stop_at=None):
+    self.value, self.stop_at, self.calls = value, stop_at, []
+
+  def __call__(self, params, key):  # set on the class: called unbound
+    fake = self
+
+    class Ctx:
+      def __enter__(self):
+        def run_block(inputs):
+          if len(fake.calls) == fake.stop_at:
+            raise KeyboardInterrupt  # the machine taken back mid-evaluation
+          fake.calls.append(1)
+          return np.full(len(inputs["seeds"]), fake.value(len(fake.calls) - 1))
+        return run_block
+
+      def __exit__(self, *exc):
+        return False
+    return Ctx()
+
+
 def test_eval_json_is_valid_json_when_e_g_is_undefined(run_dir, tmp_path, monkeypatch):
   # A train return of 0 leaves E_G undefined (NaN); eval.json held a literal NaN.
-  monkeypatch.setattr(ev, "run_episodes", lambda env, policy, seed: np.zeros(env.num_envs))
+  monkeypatch.setattr(protocol.Protocol, "_pool_runner", FakeBlocks())
   summary = ev.evaluate(run_dir, ev.EvalConfig(**{**TINY.__dict__, "conditions": ("none",)}),
                         out_dir=str(tmp_path), agents=[0], progress=False)
   assert np.isnan(summary["agents"][0]["conditions"]["none"]["e_g"])
@@ -217,41 +245,28 @@ def test_eval_json_is_valid_json_when_e_g_is_undefined(run_dir, tmp_path, monkey
   assert saved["mean"]["e_g"]["none"] is None
 
 
-def test_an_interrupted_evaluation_runs_only_the_missing_conditions_when_called_again(
+def test_an_interrupted_evaluation_runs_only_the_missing_blocks_when_called_again(
     run_dir, tmp_path, monkeypatch):
-  # Pass i returns i in every episode, so the results show which pass made them; no
-  # env is stepped (the bookkeeping is under test, not the episodes).
-  calls = []
-  def fake_episodes(env, policy, seed):
-    if len(calls) == stop_at:
-      raise KeyboardInterrupt  # the machine taken back mid-evaluation
-    calls.append(1)
-    return np.full(env.num_envs, float(len(calls) - 1))
-
-  class NoEnv:
-    def __init__(self, num_envs):
-      self.num_envs = num_envs
-    def set_visuals(self, seeds, vary):
-      assert len(seeds) == self.num_envs
-    def __enter__(self):
-      return self
-    def __exit__(self, *exc):
-      return False
-  monkeypatch.setattr(ev, "run_episodes", fake_episodes)
-  monkeypatch.setattr(dmcr_jax, "make", lambda task, num_envs, **options: NoEnv(num_envs))
-  cfg = ev.EvalConfig(**{**TINY.__dict__, "conditions": ("none", "light", "all")})
-  stop_at = None
+  # Block i returns i in every episode, so the results show which block made them.
+  # Three conditions of 2 × 2 episodes for each of 2 agents, 8 envs a block: one
+  # condition a block.
+  fake = FakeBlocks(value=float)
+  monkeypatch.setattr(protocol.Protocol, "_pool_runner", fake)
+  calls = fake.calls
+  cfg = ev.EvalConfig(**{**TINY.__dict__, "conditions": ("none", "light", "all"),
+                         "max_envs": 8})
   whole = ev.evaluate(run_dir, cfg, out_dir=str(tmp_path / "whole"), progress=False)
+  assert [whole["agents"][0]["conditions"][c]["mean"] for c in cfg.conditions] == [0, 1, 2]
 
   calls.clear()
-  stop_at = 2
+  fake.stop_at = 2
   with pytest.raises(KeyboardInterrupt):
     ev.evaluate(run_dir, cfg, out_dir=str(tmp_path / "cut"), progress=False)
   assert os.path.exists(tmp_path / "cut" / ev.PROGRESS_FILE)
   assert not os.path.exists(tmp_path / "cut" / "eval.json")
-  stop_at = None
+  fake.stop_at = None
   resumed = ev.evaluate(run_dir, cfg, out_dir=str(tmp_path / "cut"), progress=False)
-  assert len(calls) == 3  # two passes before the cut, only "all" after it
+  assert len(calls) == 3  # two blocks before the cut, only the last after it
   for a, b in zip(whole["agents"], resumed["agents"]):
     assert a["train"]["episodes"] == b["train"]["episodes"]
     for c in cfg.conditions:
@@ -260,10 +275,10 @@ def test_an_interrupted_evaluation_runs_only_the_missing_conditions_when_called_
 
   # Progress kept for another protocol (here other held-out looks) is not used.
   calls.clear()
-  stop_at = 1
+  fake.stop_at = 1
   with pytest.raises(KeyboardInterrupt):
     ev.evaluate(run_dir, cfg, out_dir=str(tmp_path / "other"), progress=False)
-  stop_at = None
+  fake.stop_at = None
   other = ev.evaluate(run_dir, dataclasses.replace(cfg, seed=1), out_dir=str(tmp_path / "other"),
                       progress=False)
   assert len(calls) == 1 + 3 and other["agents"][0]["conditions"]["none"]["mean"] == 1.0
@@ -283,8 +298,8 @@ def _summary(augs, seeds=(0, 1), task="cartpole-balance"):
                        train=dict(mean=train), conditions=cells))
   summary = dict(run_dir="runs/x", task=task, checkpoint_step=7, conditions=conditions,
                  config=dataclasses.asdict(TINY), train_look="0", agents=agents, wall_s=1.0)
-  summary["mean"] = ev._mean_row(agents, conditions)
-  summary["augs"] = ev.aug_groups(summary)
+  summary["mean"] = report.mean_row(agents, conditions)
+  summary["augs"] = report.aug_groups(summary)
   return summary
 
 
@@ -294,17 +309,17 @@ def test_agents_of_different_training_look_ranges_are_not_averaged_together(tmp_
   summary = _summary(("drq",))
   for r, look in zip(summary["agents"], ("levels:1", "levels:10")):
     r["train_look"] = look
-  groups = ev.aug_groups(summary)
+  groups = report.aug_groups(summary)
   assert [g["label"] for g in groups] == ["drq, levels:1", "drq, levels:10"]
   assert [g["agents"] for g in groups] == [[0], [1]]
   assert groups[1]["train"] == pytest.approx(200.0)
   summary["augs"] = groups
-  table = ev.markdown(summary)
+  table = report.markdown(summary)
   assert "**mean**" not in table and table.count("| paper, SAC+AUG |") == 2  # both tables
   e_g_rows = table.split("| augmentation | train |")[1].strip().splitlines()[2:]
   assert [r.split(" | ")[0] for r in e_g_rows] == [
       "| drq, levels:1", "| drq, levels:10", "| paper, SAC+AUG"]
-  ev.plot(summary, str(tmp_path / "eval.png"))
+  report.plot(summary, str(tmp_path / "eval.png"))
   assert os.path.getsize(tmp_path / "eval.png") > 0
 
 
@@ -324,7 +339,7 @@ def test_several_augmentations_are_compared_side_by_side_with_the_papers_rows(tm
   assert paper["returns"]["all"] == 358.6
   assert paper["e_g"]["all"] == pytest.approx((984.2 - 358.6) / 984.2)
 
-  table = ev.markdown(summary)
+  table = report.markdown(summary)
   assert table.count("| seed ") == 6 and "**mean**" not in table
   for g in groups:
     assert f"| **{g['label']}** (mean of 2) | {g['train']:.1f} |" in table
@@ -335,13 +350,13 @@ def test_several_augmentations_are_compared_side_by_side_with_the_papers_rows(tm
   assert [r.split(" | ")[0] for r in e_g_rows] == [
       "| drq", "| cj+drq", f"| {mine}", "| paper, SAC+AUG", "| paper, SAC+CJ+AUG"]
   assert e_g_rows[1].endswith(f"| {100 * 60 / 350:.1f} % |")
-  ev.plot(summary, str(tmp_path / "eval.png"))
+  report.plot(summary, str(tmp_path / "eval.png"))
   assert os.path.getsize(tmp_path / "eval.png") > 0
   # One augmentation: the mean row, and the paper row only for its method.
-  single = ev.markdown(_summary(("drq",)))
+  single = report.markdown(_summary(("drq",)))
   assert "**mean**" in single and "SAC+CJ+AUG" not in single and "paper, SAC+AUG" in single
   # One seed per augmentation: the agent rows are the means; no mean over augmentations.
-  one_seed = ev.markdown(_summary(("drq", "cj+drq"), seeds=(0,)))
+  one_seed = report.markdown(_summary(("drq", "cj+drq"), seeds=(0,)))
   assert "**" not in one_seed.split("Paper rows")[0]
 
 

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import dmcr_jax
-from dmcr_jax import jax_env
+from dmcr_jax import jax_env, protocol
 from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, EnvRanges, levels
 from dmcr_jax.train import evaluate as ev
 from dmcr_jax.train import loop, sac
@@ -185,9 +185,9 @@ def test_evaluate_draws_the_curve_against_training_looks(levels_run, tmp_path):
 
 
 def test_train_looks_of_an_agent_come_from_its_range():
-  seeds = ev.train_look_seeds(levels(2), 50, 0)
+  seeds = protocol.train_look_seeds(levels(2), 50, 0)
   assert set(seeds) == {0, 1}
-  np.testing.assert_array_equal(seeds, ev.train_look_seeds(levels(2), 50, 0))
-  assert (ev.train_look_seeds(5, 3, 0) == 5).all()
-  assert ev._is_default_look(levels(1)) and ev._is_default_look(0)
-  assert not ev._is_default_look(levels(2))
+  np.testing.assert_array_equal(seeds, protocol.train_look_seeds(levels(2), 50, 0))
+  assert (protocol.train_look_seeds(5, 3, 0) == 5).all()
+  assert protocol.is_default_look(levels(1)) and protocol.is_default_look(0)
+  assert not protocol.is_default_look(levels(2))

@@ -1,0 +1,191 @@
+"""The protocol's speed: `dmcr_jax.protocol` wall time and agent-steps/s beside the env's own.
+
+For one task (walker-walk by default) and the paper's protocol sizes (every
+condition that applies, 100 held-out looks × 3 initial states, 100 train episodes
+at seed 0's look, which "none" shares), it measures in one run, per renderer and
+per number of agents K (`--agents 1,4`; random-init SAC agents of the paper's
+sizes, evaluated with `dmcr-evaluate`'s greedy policy):
+- the protocol: its first pass (compilation and one run) and a second pass with
+  other params of the same shapes (the run alone: nothing compiles again), and
+  agent-steps/s of the second pass (every env's steps, K agents' together);
+- ray caster ("jax"): the JAX env's own agent-steps/s at the same batch size (the
+  envs of one block: `jax_env.PixelEnv.step` with zero actions in one jitted
+  `lax.scan` over an episode, no policy), compile and run apart, and the ratio;
+- pool: the render pool's exact frames/s at the protocol's batch size
+  (`RenderPool.render` of fixed states, `dmcr_jax.benchmarks.render.bench_pool`)
+  and the ratio of the protocol's frames/s (one frame per agent step) to it.
+
+    python -m dmcr_jax.benchmarks.evaluate --task walker-walk --agents 1,4 \\
+        --out benchmarks/results/evaluate_h200.jsonl
+    python -m dmcr_jax.benchmarks.evaluate --task walker-walk --renderers pool --agents 1 \\
+        --visual-seeds 10 --train-episodes 30 --out benchmarks/results/evaluate_h200.jsonl
+
+One JSON line per row (`dmcr_jax.benchmarks.rows`) and a Markdown table beside
+the JSONL file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import dmcr_jax  # noqa: F401  (first: picks a headless MUJOCO_GL before dm_control reads it)
+from dmcr_jax.benchmarks import rows as R
+
+
+def sac_agents(task: str, k: int, image_size: int, frame_stack: int, seed: int = 0):
+  """K random-init SAC agents of the paper's network sizes as `dmcr-evaluate`'s
+  policy params (`evaluate.policy_params`), stacked on a leading axis."""
+  from dmcr_jax import models
+  from dmcr_jax.train import evaluate, loop
+  cfg = loop.TrainConfig(task=task, seeds=tuple(range(seed, seed + k)), image_size=image_size,
+                         frame_stack=frame_stack)
+  agents = loop.init_agents(cfg, (image_size, image_size, 3 * frame_stack),
+                            models.load(task).action_size)
+  return evaluate.policy_params(agents, list(range(k)))
+
+
+def env_baseline(task: str, num_envs: int, steps: int, frame_skip: int, frame_stack: int,
+                 size: int) -> dict:
+  """The JAX env's own agent-steps/s: `steps` zero-action steps of `num_envs` envs
+  (visual seeds 1…N, every factor varying) in one jitted scan after a reset."""
+  import jax
+  import jax.numpy as jnp
+  import numpy as np
+  from dmcr_jax import jax_env, models
+  task_ = models.load(task)
+  penv = jax_env.make_env(task_, num_envs, np.arange(1, num_envs + 1, dtype=np.int32), "all",
+                          frame_skip, frame_stack, size, size)
+
+  @jax.jit
+  def episode(penv, key):
+    state = penv.reset(key)
+    zeros = jnp.zeros((num_envs, task_.action_size), jnp.float32)
+    state, _ = jax.lax.scan(lambda s, _: (penv.step(s, zeros)[0], None), state, None,
+                            length=steps)
+    return state.physics.episode_return
+
+  t = R.measure(lambda: episode(penv, jax.random.key(0)), repeats=1)
+  return dict(compile_s=t.compile_s - t.run_s, run_s=t.run_s,
+              agent_steps_per_s=num_envs * steps / t.run_s)
+
+
+def bench_protocol(task: str, renderer: str, k: int, args) -> dict:
+  """Two passes of the protocol for K agents (the second with other params)."""
+  import jax
+  from dmcr_jax import protocol
+  from dmcr_jax.train import evaluate
+  render = dict(quality="exact", workers=args.workers) if renderer == "pool" else {}
+  conditions = tuple(args.conditions.split(",")) if args.conditions else None
+  proto = protocol.prepare(task, evaluate.greedy_policy, agents=k, renderer=renderer,
+                           visual_seeds=args.visual_seeds, dynamics_seeds=args.dynamics_seeds,
+                           train_episodes=args.train_episodes, conditions=conditions,
+                           image_size=args.image_size, frame_stack=args.frame_stack,
+                           action_repeat=args.action_repeat, max_envs=args.max_envs, **render)
+  first_params = sac_agents(task, k, args.image_size, args.frame_stack, seed=0)
+  second_params = sac_agents(task, k, args.image_size, args.frame_stack, seed=k)
+  t0 = time.perf_counter()
+  first = proto(first_params)
+  first_s = time.perf_counter() - t0
+  t0 = time.perf_counter()
+  second = proto(second_params)
+  run_s = time.perf_counter() - t0
+  steps = second.agent_steps
+  return dict(task=task, renderer=renderer, agents=k, conditions=list(proto.conditions),
+              visual_seeds=args.visual_seeds, dynamics_seeds=args.dynamics_seeds,
+              train_episodes=args.train_episodes, image_size=args.image_size,
+              episodes_per_agent=proto.plan.episodes, block_envs=proto.block_envs,
+              blocks=proto.num_blocks, episode_length=proto.episode_length,
+              action_repeat=proto.env_kwargs["frame_skip"], first_pass_s=first_s,
+              compile_s=max(first_s - run_s, 0.0), run_s=run_s, agent_steps=steps,
+              agent_steps_per_s=steps / run_s, mean_all=float(first.mean(
+                  proto.conditions[-1]).mean()),
+              device=jax.devices()[0].device_kind, platform=jax.default_backend())
+
+
+def markdown(rows: list[dict]) -> str:
+  """The rows as a table: protocol rows with their baselines and ratios."""
+  lines = ["| task | renderer | variant | envs per block × blocks | compile s | run s | "
+           "throughput | baseline | ratio |", "|---|---|---|---:|---:|---:|---:|---:|---:|"]
+  for r in rows:
+    if r.get("is_baseline"):
+      continue
+    ratio = (f"{r['throughput'] / r['baseline_throughput']:.2f}"
+             if r.get("baseline_throughput") else "–")
+    base = (f"{r['baseline_throughput']:,.0f} ({r['baseline']})"
+            if r.get("baseline_throughput") else "–")
+    lines.append(f"| {r['task']} | {r['renderer']} | {r['variant']} | "
+                 f"{r['block_envs']:,} × {r['blocks']} | {r['compile_s']:.1f} | "
+                 f"{r['run_s']:.1f} | {r['throughput']:,.0f} {r['unit']} | {base} | {ratio} |")
+  return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> None:
+  """`python -m dmcr_jax.benchmarks.evaluate [options]`."""
+  p = argparse.ArgumentParser(prog="python -m dmcr_jax.benchmarks.evaluate",
+                              description=__doc__.splitlines()[0])
+  p.add_argument("--task", default="walker-walk")
+  p.add_argument("--renderers", default="jax", help="comma-separated: jax, pool")
+  p.add_argument("--agents", default="1,4", help="comma-separated numbers of agents K")
+  p.add_argument("--visual-seeds", type=int, default=100)
+  p.add_argument("--dynamics-seeds", type=int, default=3)
+  p.add_argument("--train-episodes", type=int, default=100)
+  p.add_argument("--conditions", default=None, help="comma-separated (default: all)")
+  p.add_argument("--image-size", type=int, default=84)
+  p.add_argument("--frame-stack", type=int, default=3)
+  p.add_argument("--action-repeat", type=int, default=None,
+                 help="default: the paper's for the task")
+  p.add_argument("--max-envs", type=int, default=None,
+                 help="envs per block (default: every episode in one block)")
+  p.add_argument("--workers", type=int, default=None, help="render workers (pool)")
+  p.add_argument("--no-baseline", action="store_true", help="only the protocol's rows")
+  p.add_argument("--out", default=None, help="JSONL file the rows are appended to")
+  a = p.parse_args(argv)
+  from dmcr_jax.env import check_renderer_name, default_frame_skip
+  renderers = [check_renderer_name(r) for r in a.renderers.split(",")]
+  ks = [int(k) for k in a.agents.split(",")]
+  frame_skip = a.action_repeat or default_frame_skip(a.task)
+  rows, baselines = [], {}
+  for renderer in renderers:
+    for k in ks:
+      own = bench_protocol(a.task, renderer, k, a)
+      n = own["block_envs"]
+      base = None
+      if not a.no_baseline and (renderer, n) not in baselines:
+        if renderer == "jax":
+          env = env_baseline(a.task, n, own["episode_length"], frame_skip, a.frame_stack,
+                             a.image_size)
+          b = R.row(dict(own, agents=None), "JAX env (zero actions)", n=n,
+                    throughput=env["agent_steps_per_s"], unit="agent-steps/s",
+                    compile_s=env["compile_s"], run_s=env["run_s"], is_baseline=True)
+        else:
+          from dmcr_jax.benchmarks.render import bench_pool
+          from dmcr_jax.visuals.render_pool import default_workers
+          pool = bench_pool(a.task, n, a.workers or default_workers(), "exact", a.image_size,
+                            repeats=3)
+          b = R.row(dict(own, agents=None, gl=pool["gl"], workers=pool["workers"]),
+                    "pool exact frames", n=n, throughput=pool["frames_per_s"],
+                    unit="frames/s", compile_s=pool["start_s"], run_s=pool["run_s"],
+                    is_baseline=True)
+        baselines[(renderer, n)] = b
+        R.emit(b, a.out)
+        rows.append(b)
+      base = baselines.get((renderer, n))
+      unit = "agent-steps/s" if renderer == "jax" else "frames/s"
+      r = R.row(own, f"protocol K={k}", n=n, throughput=own["agent_steps_per_s"], unit=unit,
+                compile_s=own["compile_s"], run_s=own["run_s"],
+                baseline=None if base is None else base["variant"],
+                baseline_throughput=None if base is None else base["throughput"],
+                headline=(f"{own['run_s']:.0f} s a pass, {own['agent_steps_per_s']:,.0f} "
+                          f"{unit}"))
+      if base is not None:
+        r["ratio"] = r["throughput"] / base["throughput"]
+      R.emit(r, a.out)
+      rows.append(r)
+  print(markdown(rows))
+  if a.out:
+    R.write_markdown(a.out, markdown(R.read(a.out)))
+
+
+if __name__ == "__main__":
+  main()

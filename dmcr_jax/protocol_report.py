@@ -1,0 +1,363 @@
+"""Reports of the zero-shot protocol: the Markdown table, the bar chart, augmentation
+groups and few-shot curves, from a summary (`dmcr_jax.protocol.Results.summary`, which
+`dmcr-evaluate` extends with each agent's seed, augmentation and method).
+
+A summary is a dict: "task", "conditions", "config" (the protocol's options),
+"train_look", "wall_s", "agents" (per agent: "agent", "label" or the run's "seed",
+"aug", "algo", "method", and "train" / "conditions" cells with "mean", "std",
+"episodes", "e_g"), "mean" (`mean_row`) and "augs" (`aug_groups`); a run's summary
+also has "run_dir" and "checkpoint_step". Where a row names one of the paper's
+methods, the paper's Table 4 row (`dmcr_jax.train.paper_results`) stands beside it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+
+from dmcr_jax.train import paper_results
+
+
+def generalization_error(train: float, test: float) -> float:
+  """E_G = (train − test) / train (paper Sec. 3); NaN when train is 0."""
+  return float("nan") if train == 0 else (train - test) / train
+
+
+def json_safe(tree):
+  """`tree` (dicts, lists, numbers) with NaN and ±inf replaced by None, so that
+  `json.dump(..., allow_nan=False)` writes valid JSON (null)."""
+  if isinstance(tree, dict):
+    return {k: json_safe(v) for k, v in tree.items()}
+  if isinstance(tree, (list, tuple)):
+    return [json_safe(v) for v in tree]
+  if isinstance(tree, float) and not np.isfinite(tree):
+    return None
+  return tree
+
+
+def mean_row(results: list[dict], conditions) -> dict:
+  """The agents' mean train return, condition means and E_G of those means."""
+  train = float(np.mean([r["train"]["mean"] for r in results]))
+  means = {c: float(np.mean([r["conditions"][c]["mean"] for r in results]))
+           for c in conditions}
+  return dict(train=train, conditions=means,
+              e_g={c: generalization_error(train, m) for c, m in means.items()})
+
+
+def _label(row: dict) -> str:
+  """An agent's name in the table: its augmentation (SAC+AUG) or algorithm (+ aug) for
+  a `dmcr-train` agent, else its "label"."""
+  if "aug" not in row:
+    return row.get("label") or f"agent {row['agent']}"
+  algo, aug = row.get("algo", "sac_aug"), row["aug"]
+  if algo == "sac_aug":
+    return aug
+  return algo if aug == "none" else f"{algo}, {aug}"
+
+
+def _several_ranges(summary: dict) -> bool:
+  """Whether the summary's agents trained on more than one training-look range."""
+  return len({r.get("train_look") for r in summary["agents"]}) > 1
+
+
+def aug_groups(summary: dict) -> list[dict]:
+  """The agents grouped by augmentation (by algorithm and augmentation), in run order;
+  in a run with several training-look ranges, by augmentation and range (a mean
+  over agents trained on different looks would mix what the few-shot curve
+  separates).
+
+  Args:
+    summary: `evaluate`'s results (its "agents", "conditions" and "task").
+
+  Returns:
+    One dict per group: label (`_label`), aug, method (the paper's name or None),
+    agents (indices), seeds, `_mean_row`'s train / conditions / e_g over its
+    agents, and paper: the paper's Table 4 row for the task and method as
+    {"returns": {condition: return}, "e_g": {condition: E_G}} (its "None"
+    column taken as the train return), or None.
+  """
+  conditions = summary["conditions"]
+  ranges = _several_ranges(summary)
+  groups: dict[str, list[dict]] = {}
+  for r in summary["agents"]:
+    groups.setdefault(_label(r) + (f", {r['train_look']}" if ranges else ""), []).append(r)
+  out = []
+  for label, rows in groups.items():
+    method = rows[0].get("method")
+    table = paper_results.table4(summary["task"], method) if method else None
+    paper = None if table is None else dict(
+        returns=table, e_g={c: generalization_error(table["none"], table[c])
+                            for c in conditions if c in table})
+    out.append(dict(label=label, aug=rows[0].get("aug"), method=method,
+                    agents=[r["agent"] for r in rows], seeds=[r.get("seed") for r in rows],
+                    **mean_row(rows, conditions), paper=paper))
+  return out
+
+
+def _group_word(summary: dict) -> str:
+  """The E_G table's first column: "augmentation" for `dmcr-train` agents, else "policy"."""
+  return "augmentation" if any("aug" in r for r in summary["agents"]) else "policy"
+
+
+def _render_words(cfg: dict) -> str:
+  if cfg.get("renderer", "pool") == "jax":
+    return "rendered by the JAX ray caster"
+  return f"render quality {cfg['quality']}"
+
+
+def markdown(summary: dict) -> str:
+  """The results as the paper's Table 4 (returns per condition) plus train and E_G.
+
+  Rows: every agent; the mean over agents (per augmentation when the run trained
+  several, if one has several seeds); the paper's row for each method it has. A second table gives E_G per
+  condition for those means and the paper's rows, augmentations side by side.
+  """
+  conditions = summary["conditions"]
+  cfg = summary["config"]
+  groups = summary.get("augs") or aug_groups(summary)
+  head = ["agent", "train"] + conditions + ["E_G (all)" if "all" in conditions else "E_G"]
+  source = (f"`{summary['run_dir']}` ({summary['task']}, checkpoint step "
+            f"{summary['checkpoint_step']:,})" if "run_dir" in summary else
+            f"{summary['task']}")
+  lines = [f"Zero-shot evaluation of {source}: train = mean return over "
+           f"{cfg['train_episodes']} initial states at the training look "
+           f"({summary['train_look']}); each condition = mean over {cfg['visual_seeds']} "
+           f"held-out visual seeds × {cfg['dynamics_seeds']} initial states; "
+           f"{_render_words(cfg)}; E_G = (train − test) / train. Wall time "
+           f"{summary['wall_s']:.0f} s.", "",
+           "| " + " | ".join(head) + " |", "|---|" + "---:|" * (len(head) - 1)]
+  last = "all" if "all" in conditions else conditions[-1]
+  pct = lambda e: f"{100 * e:.1f} %" if e is not None and np.isfinite(e) else "–"
+
+  def line(label, train, means, e_g):
+    cells = [label, f"{train:.1f}"] + [f"{means[c]:.1f}" for c in conditions]
+    return "| " + " | ".join(cells + [pct(e_g)]) + " |"
+
+  def paper_line(g):
+    row = g["paper"]["returns"]
+    cells = [f"paper, {g['method']}", f"{row['none']:.1f}"]
+    cells += [f"{row[c]:.1f}" if c in row else "–" for c in conditions]
+    return "| " + " | ".join(cells + [pct(g["paper"]["e_g"].get(last))]) + " |"
+
+  ranges = _several_ranges(summary)
+  for r in summary["agents"]:
+    means = {c: r["conditions"][c]["mean"] for c in conditions}
+    label = (f"seed {r['seed']}, " if "seed" in r else "") + _label(r)
+    label += f", {r['train_look']}" if ranges else ""
+    lines.append(line(label, r["train"]["mean"], means, r["conditions"][last]["e_g"]))
+  if len(groups) == 1 and len(summary["agents"]) > 1 and not ranges:
+    m = summary["mean"]
+    lines.append(line("**mean**", m["train"], m["conditions"], m["e_g"][last]))
+  elif 1 < len(groups) < len(summary["agents"]):
+    for g in groups:
+      lines.append(line(f"**{g['label']}** (mean of {len(g['agents'])})", g["train"],
+                        g["conditions"], g["e_g"][last]))
+  papers = list({g["method"]: g for g in groups if g["paper"] is not None}.values())
+  lines += [paper_line(g) for g in papers]
+  if papers:
+    lines += ["", "Paper rows are its Table 4 (five runs; its \"None\" column, shown "
+                  "under both train and none)."]
+  whose = ("policy" if _group_word(summary) == "policy"
+           else "augmentation's agents per training-look range" if ranges
+           else "augmentation's agents" if len(groups) > 1 else "agent set")
+  lines += ["", "E_G per condition (mean return of each " + whose
+            + ("; paper: from its Table 4 with \"None\" as train" if papers else "") + "):",
+            "",
+            "| " + " | ".join([_group_word(summary), "train"] + conditions) + " |",
+            "|---|" + "---:|" * (len(conditions) + 1)]
+  for g in groups:
+    cells = [g["label"], f"{g['train']:.1f}"] + [pct(g["e_g"][c]) for c in conditions]
+    lines.append("| " + " | ".join(cells) + " |")
+  for g in papers:
+    row = g["paper"]
+    cells = [f"paper, {g['method']}", f"{row['returns']['none']:.1f}"]
+    cells += [pct(row["e_g"].get(c)) for c in conditions]
+    lines.append("| " + " | ".join(cells) + " |")
+  return "\n".join(lines) + "\n"
+
+
+def plot(summary: dict, png_path: str) -> None:
+  """Grouped bars, one colour per augmentation (or policy): mean return at the training look
+  and per condition (dots: agents; ×: the paper's row), and E_G per condition."""
+  import matplotlib
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt
+  conditions = summary["conditions"]
+  groups = summary.get("augs") or aug_groups(summary)
+  columns = ["train"] + list(conditions)
+  x = np.arange(len(columns))
+  width = 0.8 / len(groups)
+  colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+  fig, (ax, ax_e) = plt.subplots(1, 2, figsize=(2.0 + 1.5 * len(columns), 3.8),
+                                 gridspec_kw=dict(width_ratios=(len(columns),
+                                                                len(conditions))))
+  drawn_papers = set()
+  for k, g in enumerate(groups):
+    color, dx = colors[k % len(colors)], (k - (len(groups) - 1) / 2) * width
+    means = [g["train"]] + [g["conditions"][c] for c in conditions]
+    ax.bar(x + dx, means, width, color=color, alpha=0.8,
+           label=f"{g['label']} ({len(g['agents'])})")
+    for a in g["agents"]:
+      r = next(r for r in summary["agents"] if r["agent"] == a)
+      ax.plot(x + dx, [r["train"]["mean"]] + [r["conditions"][c]["mean"] for c in conditions],
+              "k.", ms=4, alpha=0.6, ls="none")
+    ax_e.bar(np.arange(len(conditions)) + dx, [g["e_g"][c] for c in conditions], width,
+             color=color, alpha=0.8)
+    if g["paper"] is not None and g["method"] not in drawn_papers:
+      drawn_papers.add(g["method"])
+      row = g["paper"]["returns"]
+      ax.plot(np.array([i for i, c in enumerate(columns) if c in row or c == "train"]) + dx,
+              [row["none"] if c == "train" else row[c] for c in columns
+               if c in row or c == "train"],
+              "X", color=color, mec="k", ms=8, mew=0.8, ls="none",
+              label=f"paper {g['method']}")
+      ax_e.plot([i + dx for i, c in enumerate(conditions) if c in row],
+                [g["paper"]["e_g"][c] for c in conditions if c in row],
+                "X", color=color, mec="k", ms=8, mew=0.8, ls="none")
+  ax.set_xticks(x, columns, rotation=30)
+  ax.set_ylabel("mean episode return")
+  ax.set_title(f"{summary['task']}: zero-shot returns per visual condition", fontsize=10)
+  ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(0, -0.22), ncol=2,
+            frameon=False)
+  ax_e.set_xticks(np.arange(len(conditions)), conditions, rotation=30)
+  ax_e.axhline(0, color="k", lw=0.8)
+  ax_e.set_ylabel("E_G = (train − test) / train")
+  ax_e.set_title("generalisation error (×: paper)", fontsize=10)
+  fig.tight_layout()
+  fig.savefig(png_path, dpi=100, bbox_inches="tight")
+  plt.close(fig)
+
+
+def few_shot_rows(summary: dict) -> list[dict]:
+  """The generalisation curve of a few-shot run: one row per (augmentation, training
+  looks), the means over that group's agents (seeds).
+
+  Returns:
+    Rows sorted by augmentation then number of looks, each with "aug", "method",
+    "looks" (number of training looks), "train_look", "seeds", "train" (mean
+    return at the training looks), "conditions" {condition: mean test return},
+    "e_g" {condition: E_G of those means} and "all_std" (std of "all" over the
+    seeds; 0 for one seed).
+  """
+  groups: dict[tuple, list[dict]] = {}
+  for r in summary["agents"]:
+    groups.setdefault((r["aug"], r["looks"], r["train_look"]), []).append(r)
+  rows = []
+  for (aug, looks, label), agents in sorted(groups.items(), key=lambda kv: kv[0][:2]):
+    mean = mean_row(agents, summary["conditions"])
+    row = dict(aug=aug, method=agents[0].get("method"), looks=looks, train_look=label,
+               seeds=[r["seed"] for r in agents], train=mean["train"],
+               conditions=mean["conditions"], e_g=mean["e_g"])
+    if "all" in summary["conditions"]:
+      row["all_std"] = float(np.std([r["conditions"]["all"]["mean"] for r in agents]))
+    rows.append(row)
+  return rows
+
+
+def zero_shot_references(rows: list[dict]) -> dict[str, float]:
+  """{method or augmentation: test return under "all"} of the zero-shot rows
+  (trained on dm_control's look alone: levels:1 or seed 0)."""
+  return {(r["method"] or r["aug"]): r["conditions"]["all"] for r in rows
+          if r["train_look"] in ("levels:1", "seed 0") and "all" in r["conditions"]}
+
+
+def few_shot_markdown(summary: dict, rows: list[dict]) -> str:
+  """The curve as a Markdown table: per augmentation and number of training looks,
+  the train return, each condition's test return and E_G (all)."""
+  conditions = summary["conditions"]
+  cfg = summary["config"]
+  last = "all" if "all" in conditions else conditions[-1]
+  head = ["augmentation", "training looks", "seeds", "train"] + conditions + [f"E_G ({last})"]
+  lines = [f"Few-shot generalisation of `{summary['run_dir']}` ({summary['task']}, "
+           f"checkpoint step {summary['checkpoint_step']:,}): one agent per training-look "
+           f"range and seed, all tested on the same {cfg['visual_seeds']} held-out visual "
+           f"seeds × {cfg['dynamics_seeds']} initial states; train = mean return over "
+           f"{cfg['train_episodes']} episodes at looks from the agent's own range; "
+           f"{_render_words(cfg)}; means over seeds; E_G = (train − test) / train.", "",
+           "| " + " | ".join(head) + " |", "|---|---|---:|" + "---:|" * (len(head) - 3)]
+  for r in rows:
+    e_g = r["e_g"][last]
+    cells = [r["method"] or r["aug"], f"{r['looks']:,} ({r['train_look']})",
+             str(len(r["seeds"])), f"{r['train']:.1f}"]
+    cells += [f"{r['conditions'][c]:.1f}" for c in conditions]
+    cells.append(f"{100 * e_g:.1f} %" if np.isfinite(e_g) else "–")
+    lines.append("| " + " | ".join(cells) + " |")
+  return "\n".join(lines) + "\n"
+
+
+def plot_few_shot(summary: dict, rows: list[dict], png_path: str) -> None:
+  """Test return per condition ("all" bold) and E_G against the number of training
+  looks (log x), one line style per augmentation; dashed: the run's zero-shot
+  "all" returns (`zero_shot_references`)."""
+  import matplotlib
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt
+  conditions = summary["conditions"]
+  last = "all" if "all" in conditions else conditions[-1]
+  augs = list(dict.fromkeys(r["aug"] for r in rows))
+  styles = ["-", "--", ":", "-."]
+  colours = {c: ("black" if c == "all" else f"C{i}") for i, c in enumerate(conditions)}
+  fig, (ax, ax_e) = plt.subplots(1, 2, figsize=(10, 4), gridspec_kw=dict(width_ratios=(3, 2)))
+  for j, aug in enumerate(augs):
+    mine = [r for r in rows if r["aug"] == aug]
+    x = [r["looks"] for r in mine]
+    name = mine[0]["method"] or aug
+    for c in conditions:
+      ax.plot(x, [r["conditions"][c] for r in mine], styles[j % 4], color=colours[c],
+              marker="o", ms=3, lw=2.5 if c == last else 1,
+              label=f"{c}" if len(augs) == 1 else f"{c}, {name}")
+    ax_e.plot(x, [r["e_g"][last] for r in mine], styles[j % 4], color="black", marker="o",
+              ms=3, label=name)
+  for k, (name, value) in enumerate(zero_shot_references(rows).items()):
+    ax.axhline(value, color=f"C{k + len(conditions)}", ls=(0, (5, 3)), lw=1.2,
+               label=f"zero-shot {name} ({last})")
+  ticks = sorted({r["looks"] for r in rows})
+  for a in (ax, ax_e):
+    a.set_xscale("log")
+    a.set_xticks(ticks, [f"{t:,}" if t < 2**30 else "2^30 (all)" for t in ticks],
+                 fontsize=7, rotation=30)
+    a.minorticks_off()
+    a.set_xlabel("training looks (visual seeds)")
+  ax.set_ylabel("test return (held-out looks)")
+  ax_e.set_ylabel(f"E_G ({last})")
+  ax.set_title(f"{summary['task']}: test return against training looks", fontsize=9)
+  ax_e.set_title("generalisation error (train − test) / train", fontsize=9)
+  ax.legend(fontsize=6, loc="best", ncol=2)
+  ax_e.legend(fontsize=7)
+  fig.tight_layout()
+  fig.savefig(png_path, dpi=100)
+  plt.close(fig)
+
+
+def write_few_shot(summary: dict, out_dir: str) -> list[dict]:
+  """Writes the generalisation curve of a few-shot run's evaluation: few_shot.json
+  (rows and zero-shot references), few_shot.md and few_shot.png; returns the rows."""
+  rows = few_shot_rows(summary)
+  data = dict(task=summary["task"], run_dir=summary["run_dir"],
+              checkpoint_step=summary["checkpoint_step"], conditions=summary["conditions"],
+              rows=rows, zero_shot=zero_shot_references(rows))
+  with open(os.path.join(out_dir, "few_shot.json"), "w") as f:
+    json.dump(json_safe(data), f, indent=1, allow_nan=False)
+  with open(os.path.join(out_dir, "few_shot.md"), "w") as f:
+    f.write(few_shot_markdown(summary, rows))
+  plot_few_shot(summary, rows, os.path.join(out_dir, "few_shot.png"))
+  return rows
+
+
+def write(summary: dict, out_dir: str, few_shot: bool | None = None) -> None:
+  """Writes eval.json (an undefined E_G as null), eval.md and eval.png into `out_dir`
+  (made), and the few-shot curve's files (`write_few_shot`, which reads each row's
+  "looks") when `few_shot`; None: when the agents trained on several training-look
+  ranges and every row says how many looks."""
+  os.makedirs(out_dir, exist_ok=True)
+  with open(os.path.join(out_dir, "eval.json"), "w") as f:
+    json.dump(json_safe(summary), f, indent=1, allow_nan=False)
+  with open(os.path.join(out_dir, "eval.md"), "w") as f:
+    f.write(markdown(summary))
+  plot(summary, os.path.join(out_dir, "eval.png"))
+  if few_shot is None:
+    few_shot = _several_ranges(summary) and all("looks" in r for r in summary["agents"])
+  if few_shot:
+    write_few_shot(summary, out_dir)

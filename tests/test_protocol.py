@@ -1,0 +1,284 @@
+"""`dmcr_jax.protocol`: the paper's protocol for any policy.
+
+Its returns equal those of `dmcr_jax.make`'s env stepped episode by episode from the
+host (the path `dmcr-evaluate` took before), for the ray caster and the pool; a pass
+is deterministic and compiles once; K agents in one pass equal K single passes; bad
+policies and options are refused before anything compiles, bad actions after the pass.
+
+Tiny sizes: cartpole-balance at action repeat 100 (10 agent steps an episode), 16 px
+frames, 2 held-out looks × 2 initial states. The test policy reads four pixels of its
+own observation with elementwise arithmetic (no matrix product, whose rounding on a
+CPU depends on the batch size), so returns can be compared exactly across batch
+layouts.
+"""
+
+import json
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import dmcr_jax
+from dmcr_jax import protocol as P
+from dmcr_jax import protocol_report
+
+TASK = "cartpole-balance"
+OPTS = dict(visual_seeds=2, dynamics_seeds=2, train_episodes=3,
+            conditions=("none", "floor", "all"), train_look=5, image_size=16,
+            action_repeat=100, seed=0)
+
+
+def pixel_policy(params, obs, key):
+  """tanh of a weighted sum of four pixels (+ optional key noise), scaled and shifted:
+  scale 1 and shift 0 keep actions in [−1, 1]; the tests break them on purpose."""
+  x = obs.astype(jnp.float32) / 255.0
+  w = params["w"]
+  z = (params["b"] + w[0] * x[:, 2, 3, 0] + w[1] * x[:, 8, 8, 4] + w[2] * x[:, 12, 5, 8]
+       + w[3] * x[:, 5, 12, 7])
+  z = z + params["noise"] * jax.random.normal(key, z.shape)
+  return params["scale"] * jnp.tanh(z)[:, None] + params["shift"]
+
+
+def make_params(seed=0, noise=0.0, scale=1.0, shift=0.0):
+  w = jax.random.normal(jax.random.key(seed), (4,)) * 4.0
+  f = lambda v: jnp.float32(v)
+  return dict(w=w, b=f(-0.5), noise=f(noise), scale=f(scale), shift=f(shift))
+
+
+def old_path(params, renderer="jax", **render):
+  """The protocol as `dmcr-evaluate` ran it: one `dmcr_jax.make` env, a condition at a
+  time (`set_visuals`), a host round trip and a NumPy action every step."""
+  per_env = np.repeat(P.held_out_seeds(OPTS["visual_seeds"], OPTS["seed"]),
+                      OPTS["dynamics_seeds"])
+  n = per_env.size
+  resets = P.reset_seeds(n, OPTS["seed"])
+  policy = jax.jit(lambda obs: pixel_policy(params, obs, jax.random.key(0)))
+  env = dmcr_jax.make(TASK, num_envs=n, visual_seeds=per_env, vary="none",
+                      frame_skip=OPTS["action_repeat"], image_size=OPTS["image_size"],
+                      seed=OPTS["seed"], renderer=renderer, **render)
+
+  def run_episodes():
+    obs, _ = env.reset(seed=resets)
+    low, high = env.single_action_space.low, env.single_action_space.high
+    for _ in range(env.episode_length):
+      a = np.asarray(policy(obs))
+      obs, _, _, truncated, info = env.step(
+          (low + (a + 1.0) * 0.5 * (high - low)).astype(np.float32))
+    assert truncated.all()
+    return np.asarray(info["episode_return"], np.float64)
+
+  out = {}
+  with env:
+    for c in OPTS["conditions"]:
+      env.set_visuals(per_env, vary=c)
+      out[c] = run_episodes()
+    env.set_visuals(P.train_look_seeds(OPTS["train_look"], n, OPTS["seed"]), vary="all")
+    out["train"] = run_episodes()[:OPTS["train_episodes"]]
+  return out
+
+
+@pytest.fixture(scope="module")
+def single():
+  """The planned protocol of one agent and its pass with `make_params()`."""
+  proto = P.prepare(TASK, pixel_policy, **OPTS)
+  return proto, proto(make_params())
+
+
+def test_the_plan_gives_every_condition_the_same_initial_states_and_keys():
+  plan = P.prepare(TASK, pixel_policy, agents=2, **{**OPTS, "train_look": [0, 5]}).plan
+  names = [s.name for s in plan.segments]
+  assert names == ["none", "floor", "all", "train"]
+  n, t = 4, 3
+  np.testing.assert_array_equal(plan.reset_seed, np.concatenate([P.reset_seeds(n, 0)] * 3
+                                                               + [P.reset_seeds(n, 0)[:t]]))
+  np.testing.assert_array_equal(plan.index, np.concatenate([np.arange(n)] * 3 + [np.arange(t)]))
+  test = np.repeat(P.held_out_seeds(2, 0), 2)
+  for k in range(2):
+    np.testing.assert_array_equal(plan.visual_seed[k, :3 * n], np.tile(test, 3))
+  # Agent 0 trained on seed 0: its train episodes are "none"'s; agent 1's are at seed 5.
+  assert plan.shares == (True, False)
+  assert (plan.visual_seed[1, 3 * n:] == 5).all()
+  from dmcr_jax.visuals.params import factor_mask
+  for s in plan.segments:
+    assert (plan.mask[:, s.start:s.start + s.size] == factor_mask("cartpole", s.vary)).all()
+  # Only dm_control's look to train on, and "none" run: no train episodes of their own.
+  shared = P.prepare(TASK, pixel_policy, **{**OPTS, "train_look": 0}).plan
+  assert [s.name for s in shared.segments] == ["none", "floor", "all"]
+
+
+def _no_compile(monkeypatch):
+  def fail(*a, **k):
+    raise AssertionError("compiled before the input was checked")
+  monkeypatch.setattr(P, "_ray_block_jit", fail)
+
+
+@pytest.mark.parametrize("policy, params, agents, match", [
+    (lambda p, o, k: jnp.zeros((o.shape[0], 2)), make_params(), None,
+     r"actions of shape \(batch, action_size\) = \(2, 1\).*got \(2, 2\)"),
+    (lambda p, o, k: jnp.zeros((o.shape[0],)), make_params(), None,
+     r"actions of shape \(batch, action_size\) = \(2, 1\).*got \(2,\)"),
+    (lambda p, o, k: jnp.asarray(np.tanh(np.asarray(o, np.float32)[:, :1, 0, 0])), make_params(),
+     None, r"policy must be a pure JAX function of \(params, obs, key\)"),
+    (lambda p, o, k: jnp.ones((o.shape[0], 1)) * (1 if o.mean() > 0 else -1), make_params(),
+     None, r"policy must be a pure JAX function of \(params, obs, key\)"),
+    (lambda p, o, k: jnp.zeros((o.shape[0], 1), jnp.int32), make_params(), None,
+     "float actions"),
+    (lambda p, o, k: p["missing"], make_params(), None, r"failed when traced.*KeyError"),
+    (pixel_policy, make_params(), 2, "leading axis of 2 agents"),
+])
+def test_bad_policies_are_refused_before_anything_compiles(policy, params, agents, match,
+                                                           monkeypatch):
+  _no_compile(monkeypatch)
+  with pytest.raises(ValueError, match=match):
+    P.evaluate(TASK, policy, params, agents=agents, **OPTS)
+
+
+@pytest.mark.parametrize("options, match", [
+    (dict(renderer="opengl"), "valid: pool, jax"),
+    (dict(conditions=("fog",)), "valid: none, light"),
+    (dict(train_episodes=5), "at most visual_seeds"),
+    (dict(visual_seeds=0), "visual_seeds must be a positive int"),
+    (dict(quality="fast"), "apply only to renderer='pool'"),
+    (dict(renderer="pool", shadows=False), "apply only to renderer='jax'"),
+    (dict(colour=1), "unknown option colour"),
+    (dict(train_look=[0, 1]), "one per agent"),
+    (dict(train_look=dmcr_jax.TEST_SEEDS), "lie in the training looks"),
+    (dict(max_envs=0), "max_envs must be a positive int"),
+    (dict(agents=0), "agents must be a positive int"),
+])
+def test_bad_options_are_refused_naming_the_valid_ones(options, match, monkeypatch):
+  _no_compile(monkeypatch)
+  with pytest.raises((ValueError, RuntimeError), match=match):
+    P.evaluate(TASK, pixel_policy, make_params(), **{**OPTS, **options})
+
+
+@pytest.mark.slow
+def test_returns_equal_the_host_stepped_env(single):
+  _, result = single
+  want = old_path(make_params())
+  np.testing.assert_allclose(result.train[0], want["train"], rtol=1e-6)
+  for c in OPTS["conditions"]:
+    np.testing.assert_allclose(result.returns[c][0], want[c], rtol=1e-6)
+  # The looks matter: the conditions' returns are not all the same.
+  assert len({float(result.mean(c)[0]) for c in OPTS["conditions"]}) > 1
+  for c in OPTS["conditions"]:
+    assert result.e_g(c)[0] == pytest.approx(
+        (result.train_mean[0] - result.mean(c)[0]) / result.train_mean[0])
+
+
+@pytest.mark.slow
+def test_a_pass_is_deterministic_and_new_params_compile_nothing(single):
+  proto, first = single
+  compiled = P._ray_block_jit()._cache_size()
+  noisy = make_params(seed=3, noise=0.5)
+  a, b = proto(noisy), proto(noisy)
+  assert P._ray_block_jit()._cache_size() == compiled
+  for c in OPTS["conditions"]:
+    np.testing.assert_array_equal(a.returns[c], b.returns[c])
+    assert not np.array_equal(a.returns[c], first.returns[c])
+  np.testing.assert_array_equal(a.train, b.train)
+
+
+@pytest.mark.slow
+def test_actions_out_of_range_or_nan_stop_the_pass_with_a_clear_message(single):
+  proto, _ = single  # same program: params only
+  with pytest.raises(ValueError, match=r"actions outside \[-1, 1\] \(agents \[0\], largest "
+                                       r"\|action\| 3"):
+    proto(make_params(scale=3.0))
+  with pytest.raises(ValueError, match=r"NaN actions \(agents \[0\]\).*not clipped"):
+    proto(make_params(shift=float("nan")))
+
+
+@pytest.mark.slow
+def test_k_agents_in_one_pass_equal_k_single_passes(single):
+  proto, _ = single
+  params = [make_params(seed=s, noise=0.3) for s in (1, 2)]
+  stacked = jax.tree.map(lambda *x: jnp.stack(x), *params)
+  both = P.evaluate(TASK, pixel_policy, stacked, agents=2, **OPTS)
+  assert both.train.shape == (2, 3) and both.returns["all"].shape == (2, 4)
+  for k, p in enumerate(params):
+    one = proto(p)
+    np.testing.assert_array_equal(both.train[k], one.train[0])
+    for c in OPTS["conditions"]:
+      np.testing.assert_array_equal(both.returns[c][k], one.returns[c][0])
+
+
+@pytest.mark.slow
+def test_the_pool_runs_every_condition_in_one_batch_with_the_same_returns():
+  # The pool env of every condition's looks (a vary per env) against the pool env
+  # swept one condition at a time.
+  render = dict(quality="fastest", workers=1)
+  got = P.evaluate(TASK, pixel_policy, make_params(), renderer="pool", **render, **OPTS)
+  want = old_path(make_params(), renderer="pool", **render)
+  np.testing.assert_allclose(got.train[0], want["train"], rtol=1e-6)
+  for c in OPTS["conditions"]:
+    np.testing.assert_allclose(got.returns[c][0], want[c], rtol=1e-6)
+  assert "render quality fastest" in got.markdown()
+
+
+def _results(train, returns):
+  conditions = tuple(returns)
+  return P.Results(
+      task=TASK, conditions=conditions, train=np.asarray(train, np.float64),
+      returns={c: np.asarray(v, np.float64) for c, v in returns.items()},
+      test_visual_seeds=np.array([2**30 + 1, 2**30 + 2]), train_looks=("seed 0", "seed 0"),
+      config=dict(visual_seeds=2, dynamics_seeds=1, train_episodes=2, renderer="jax"),
+      labels=("mine", "theirs"), device="cpu", wall_s=1.5, compile_s=1.0, agent_steps=40)
+
+
+def test_the_report_files_hold_the_returns_and_e_g(tmp_path):
+  r = _results([[100, 300], [0, 0]], {"none": [[200, 200], [5, 5]], "all": [[50, 150], [1, 1]]})
+  np.testing.assert_allclose(r.train_mean, [200, 0])
+  np.testing.assert_allclose(r.e_g("all"), [0.5, np.nan])
+  summary = r.write(str(tmp_path))
+  assert sorted(os.listdir(tmp_path)) == ["eval.json", "eval.md", "eval.png"]
+  saved = json.loads((tmp_path / "eval.json").read_text(),
+                     parse_constant=lambda c: pytest.fail(f"invalid JSON: {c}"))
+  assert saved == json.loads(r.to_json())
+  mine, theirs = saved["agents"]
+  assert mine["label"] == "mine" and mine["conditions"]["all"]["e_g"] == 0.5
+  assert mine["conditions"]["none"]["episodes"] == [200, 200]
+  assert theirs["conditions"]["all"]["e_g"] is None  # train 0: E_G undefined
+  assert saved["mean"]["train"] == 100
+  table = (tmp_path / "eval.md").read_text()
+  assert table == r.markdown() == protocol_report.markdown(summary)
+  assert "| agent | train | none | all | E_G (all) |" in table
+  assert "| mine | 200.0 | 200.0 | 100.0 | 50.0 % |" in table
+  assert "| theirs | 0.0 | 5.0 | 1.0 | – |" in table
+  assert "| policy | train | none | all |" in table
+  assert os.path.getsize(tmp_path / "eval.png") > 0
+
+
+@pytest.mark.slow
+def test_the_worked_example_evaluates_a_scripted_policy_reproducibly(tmp_path):
+  from examples import evaluate_own_policy
+  argv = ["--tiny", "--policy", "random", "--out", str(tmp_path / "a")]
+  first = evaluate_own_policy.main(argv)
+  again = evaluate_own_policy.main(argv[:-1] + [str(tmp_path / "b")])
+  # Random actions from the protocol's keys: the same in every pass.
+  np.testing.assert_array_equal(first.returns["all"], again.returns["all"])
+  saved = json.loads((tmp_path / "a" / "eval.json").read_text())
+  assert saved["agents"][0]["conditions"]["all"]["episodes"] == first.returns["all"][0].tolist()
+
+
+@pytest.mark.slow
+def test_the_benchmark_rows_put_the_protocol_beside_the_env(tmp_path, capsys):
+  from dmcr_jax.benchmarks import evaluate as bench
+  from dmcr_jax.benchmarks import rows as R
+  out = str(tmp_path / "evaluate.jsonl")
+  bench.main(["--task", TASK, "--agents", "1,2", "--visual-seeds", "2", "--dynamics-seeds",
+              "1", "--train-episodes", "2", "--conditions", "none,all", "--image-size", "16",
+              "--action-repeat", "100", "--out", out])
+  rows = R.read(out)
+  assert [r["variant"] for r in rows] == ["JAX env (zero actions)", "protocol K=1",
+                                          "JAX env (zero actions)", "protocol K=2"]
+  for base, r in zip(rows[::2], rows[1::2]):
+    assert base["is_baseline"] and base["n"] == r["n"] == r["block_envs"]
+    assert r["blocks"] == 1 and r["block_envs"] == 4 * r["agents"]  # 2 conditions × 2 looks
+    assert r["agent_steps"] == r["block_envs"] * r["blocks"] * r["episode_length"] == r["n"] * 10
+    assert r["throughput"] == pytest.approx(r["agent_steps"] / r["run_s"])
+    assert r["baseline_throughput"] == base["throughput"]
+    assert r["ratio"] == pytest.approx(r["throughput"] / base["throughput"])
+  assert "| cartpole-balance | jax | protocol K=2 |" in (tmp_path / "evaluate.md").read_text()
