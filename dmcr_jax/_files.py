@@ -1,7 +1,8 @@
-"""Files written whole or not at all."""
+"""Files written whole or not at all, and JSON that stays valid."""
 
 from __future__ import annotations
 
+import math
 import os
 import tempfile
 from typing import BinaryIO, Callable
@@ -28,3 +29,15 @@ def write_atomic(path: str | os.PathLike, write: Callable[[BinaryIO], None]) -> 
     if os.path.exists(tmp):
       os.unlink(tmp)
     raise
+
+
+def json_safe(tree):
+  """`tree` (dicts, lists, numbers) with NaN and ±inf replaced by None, so that
+  `json.dump(..., allow_nan=False)` writes valid JSON (null)."""
+  if isinstance(tree, dict):
+    return {k: json_safe(v) for k, v in tree.items()}
+  if isinstance(tree, (list, tuple)):
+    return [json_safe(v) for v in tree]
+  if isinstance(tree, float) and not math.isfinite(tree):
+    return None
+  return tree

@@ -17,24 +17,13 @@ import os
 
 import numpy as np
 
+from dmcr_jax._files import json_safe  # noqa: F401 (re-exported)
 from dmcr_jax.train import paper_results
 
 
 def generalization_error(train: float, test: float) -> float:
   """E_G = (train − test) / train (paper Sec. 3); NaN when train is 0."""
   return float("nan") if train == 0 else (train - test) / train
-
-
-def json_safe(tree):
-  """`tree` (dicts, lists, numbers) with NaN and ±inf replaced by None, so that
-  `json.dump(..., allow_nan=False)` writes valid JSON (null)."""
-  if isinstance(tree, dict):
-    return {k: json_safe(v) for k, v in tree.items()}
-  if isinstance(tree, (list, tuple)):
-    return [json_safe(v) for v in tree]
-  if isinstance(tree, float) and not np.isfinite(tree):
-    return None
-  return tree
 
 
 def mean_row(results: list[dict], conditions) -> dict:

@@ -20,7 +20,6 @@ import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TINY_SIZES = re.compile(r"\b(1024|4096|256)\b")
-PENDING = {"docs/protocol.md"}  # written by another branch of issue 61; drop once merged
 
 
 def pages() -> list[str]:
@@ -76,6 +75,6 @@ def test_relative_links_name_files_of_the_repository():
       if re.match(r"[a-z]+:", target) or target.startswith("#"):
         continue
       path = os.path.normpath(os.path.join(os.path.dirname(page), target.split("#")[0]))
-      if not os.path.exists(os.path.join(ROOT, path)) and path not in PENDING:
+      if not os.path.exists(os.path.join(ROOT, path)):
         missing.append(f"{page}: {target}")
   assert not missing, missing

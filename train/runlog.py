@@ -29,6 +29,8 @@ import time
 import jax
 import numpy as np
 
+from dmcr_jax._files import json_safe  # noqa: F401 (re-exported)
+
 PROGRESS_FRACTION = 0.02
 """`RunLog.due` reports progress at least every this fraction of a run's steps,
 whatever `log_every` says, so a run shorter than `log_every` still shows
@@ -48,18 +50,6 @@ def progress_every(cfg) -> int:
 def crossed(every: int, before: int, step: int) -> bool:
   """Whether `step` passed a multiple of `every` since `before` (0: never)."""
   return bool(every) and step // every != before // every
-
-
-def json_safe(tree):
-  """`tree` (dicts, lists, numbers) with NaN and ±inf replaced by None, so that
-  `json.dump(..., allow_nan=False)` writes valid JSON (null)."""
-  if isinstance(tree, dict):
-    return {k: json_safe(v) for k, v in tree.items()}
-  if isinstance(tree, (list, tuple)):
-    return [json_safe(v) for v in tree]
-  if isinstance(tree, float) and not np.isfinite(tree):
-    return None
-  return tree
 
 
 def read_json(path: str):
