@@ -60,8 +60,8 @@ from dmcr_jax.visuals.levels import EnvRanges, SeedBounds, SeedRange
 
 RENDER_CHUNK = 256
 """Default envs per vmapped render chunk above which `render_batch` maps over chunks
-(bounds memory and keeps a chunk's arrays in cache; chunk sizes compared in
-benchmarks/results/jax_render_h100.md)."""
+(bounds memory and keeps a chunk's arrays in cache; chunk sizes compared in the rows of
+benchmarks/results/jax_render_h100.jsonl)."""
 
 
 @struct.dataclass

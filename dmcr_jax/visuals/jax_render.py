@@ -94,7 +94,7 @@ MIP_COS_POWER = 1.0
 # an array with a length-3 axis: the same code then runs inside the fused GPU kernel
 # (`jax_render_kernel`, where a block's arrays must have power-of-two shapes) and
 # under XLA, where a sum over a length-3 axis would be a reduction that ends a GPU
-# fusion (the A/B is in benchmarks/results/jax_render_h100.md).
+# fusion (measured rows: benchmarks/results/jax_render_h100.jsonl).
 # A 3×3 matrix is a 9-tuple, row-major.
 
 
@@ -540,7 +540,7 @@ def _obj_numbers(read):
 # running minimum folded in object by object, which keeps each trace in registers
 # instead of writing a (K, P) array of distances and reducing it; on XLA's CPU
 # backend, which runs the long select chains several times slower, the stacked
-# distances and argmin (the A/Bs: jax_render_h100.md, jax_render_cpu.md in
+# distances and argmin (measured rows: jax_render_h100.jsonl, jax_render_cpu.jsonl in
 # benchmarks/results/).
 # The fused GPU kernel always folds.
 
