@@ -24,11 +24,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dmcr_jax.train import loop
-from dmcr_jax.train.step import to_env_action
-from dmcr_jax.train.evaluate import greedy_action, held_out_seeds
-from dmcr_jax.train import layouts
+from dmcr_jax.protocol_plan import held_out_seeds
+from dmcr_jax.train import layouts, loop, sac
 from dmcr_jax.train.networks import center_crop
+from dmcr_jax.train.step import to_env_action
+
+
+@jax.jit
+def greedy_action(agent: sac.AgentState, obs: jax.Array) -> jax.Array:
+  """The evaluation policy of one agent (`evaluate.greedy_policy`), jitted: tanh of
+  the mean action, (N, A) in [−1, 1]."""
+  return sac.act(agent, obs, None, deterministic=True)
 
 
 def _agent(run_dir: str, index: int):

@@ -59,7 +59,7 @@ from dmcr_jax.protocol_report import aug_groups, few_shot_markdown, few_shot_row
 from dmcr_jax.train import loop, paper_results, sac
 
 __all__ = ["EvalConfig", "PROGRESS_FILE", "check_eval_config", "conditions_for", "evaluate",
-           "generalization_error", "greedy_action", "greedy_policy", "held_out_seeds",
+           "generalization_error", "greedy_policy", "held_out_seeds",
            "main", "markdown", "policy_params"]
 
 
@@ -129,12 +129,6 @@ def render_options(cfg: EvalConfig) -> dict:
 def greedy_policy(agent: sac.AgentState, obs: jax.Array, key: jax.Array) -> jax.Array:
   """The evaluation policy as a `dmcr_jax.protocol.Policy`: tanh of the mean action,
   (B, A) in [−1, 1] (`key` unused); `agent` as `policy_params` makes it."""
-  return sac.act(agent, obs, None, deterministic=True)
-
-
-@jax.jit
-def greedy_action(agent: sac.AgentState, obs: jax.Array) -> jax.Array:
-  """`greedy_policy` of one agent, jitted: (N, A) in [−1, 1]."""
   return sac.act(agent, obs, None, deterministic=True)
 
 
