@@ -62,6 +62,10 @@ def test_a_run_writes_its_eval_curve_at_every_multiple_and_at_the_end(eval_run):
       assert float(r["e_g"]) == pytest.approx((train - test) / train, abs=1e-3)
   evals = {int(r["step"]): float(r["eval_s"]) for r in rows}
   assert summary["eval_seconds"] == pytest.approx(sum(evals.values()), abs=0.01)
+  # The training benchmark's row field: the evaluations' share of the loop's time.
+  from dmcr_jax.benchmarks.training import eval_share
+  assert 0 < eval_share(summary) == summary["eval_seconds"] / summary["wall_s"] < 1
+  assert eval_share(dict(wall_s=10.0)) is None
   assert os.path.getsize(os.path.join(cfg.out_dir, eval_curve.PNG)) > 0
 
 
