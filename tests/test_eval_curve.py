@@ -4,9 +4,9 @@ options refused before anything is built, and a resumed run's rows past its
 checkpoint dropped."""
 
 import csv
+import dataclasses
 import os
 
-import numpy as np
 import pytest
 
 from dmcr_jax import protocol
@@ -161,3 +161,28 @@ def test_a_resumed_run_drops_the_eval_rows_past_its_checkpoint(tmp_path, capsys)
   with eval_curve.EvalCurve(plan, 0, resume=False):
     pass
   assert read(path) == []
+
+
+def test_eval_options_survive_config_json(tmp_path):
+  cfg = loop.TrainConfig(out_dir=str(tmp_path), eval_every=500, eval_conditions=("none", "all"),
+                         eval_renderer="pool")
+  config.save_config(cfg, str(tmp_path))
+  assert config.load_config(str(tmp_path)) == cfg
+
+
+@pytest.mark.slow
+def test_a_run_resumed_from_an_earlier_checkpoint_evaluates_from_there_again(eval_run,
+                                                                             tmp_path):
+  import shutil
+  cfg, _ = eval_run
+  out = str(tmp_path / "run")
+  shutil.copytree(cfg.out_dir, out)
+  before = read(os.path.join(out, eval_curve.CSV))
+  shutil.rmtree(os.path.join(checkpoint.folder(out), "48"))  # as if killed before it
+  resumed = dataclasses.replace(cfg, out_dir=out)
+  summary = loop.train(resumed, resume=True, progress=False)
+  rows = read(os.path.join(out, eval_curve.CSV))
+  assert [int(r["step"]) for r in rows] == [24, 24, 48, 48]  # 48 once, not twice
+  assert rows[:2] == before[:2]
+  # The same agents' evaluation at 24 is kept; 48's comes from the resumed training.
+  assert summary["eval_seconds"] == pytest.approx(float(rows[-1]["eval_s"]), abs=0.01)
