@@ -91,8 +91,9 @@ def test_eval_curve_returns_equal_the_protocol_on_the_checkpointed_agents(eval_r
                                                             abs=1e-3)
 
 
-def test_no_eval_curve_without_eval_every(tmp_path):
-  plan = config.resolve(tiny_config(tmp_path / "run", eval_every=0))
+@pytest.mark.parametrize("off", [0, None])
+def test_no_eval_curve_without_eval_every(tmp_path, off):
+  plan = config.resolve(tiny_config(tmp_path / "run", eval_every=off))
   os.makedirs(plan.cfg.out_dir)
   with eval_curve.EvalCurve(plan, 0, resume=False) as curve:
     assert not curve.due(0, 48) and curve.summary() == {}

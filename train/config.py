@@ -116,7 +116,7 @@ class TrainConfig:
     sac: the learner's hyperparameters.
     eval_every: training steps per agent between evaluations during training
       (`dmcr_jax.train.eval_curve`: a reduced protocol on the current agents,
-      also at the last step; 0: none).
+      also at the last step; 0 or None: none).
     eval_looks: held-out looks per condition of those evaluations.
     eval_dynamics: initial states per held-out look.
     eval_train_episodes: episodes at each agent's training looks (the train
@@ -354,10 +354,11 @@ def check_eval(cfg: TrainConfig) -> None:
   """ValueError naming the problem with the evaluation-during-training fields
   (`eval_every` and the reduced protocol's options)."""
   from dmcr_jax.protocol_plan import conditions_for
-  if (isinstance(cfg.eval_every, bool) or not isinstance(cfg.eval_every, (int, np.integer))
+  if cfg.eval_every is not None and (
+      isinstance(cfg.eval_every, bool) or not isinstance(cfg.eval_every, (int, np.integer))
       or cfg.eval_every < 0):
-    raise ValueError(f"eval_every must be an int >= 0 (0: no evaluation during training), "
-                     f"got {cfg.eval_every!r}")
+    raise ValueError(f"eval_every must be an int >= 0 (0 or None: no evaluation during "
+                     f"training), got {cfg.eval_every!r}")
   for name in ("eval_looks", "eval_dynamics", "eval_train_episodes"):
     positive_int(name, getattr(cfg, name))
   if cfg.eval_train_episodes > cfg.eval_looks * cfg.eval_dynamics:

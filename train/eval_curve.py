@@ -88,7 +88,8 @@ def rows(step: int, results, labels, eval_s: float) -> list[dict]:
 
 
 class EvalCurve:
-  """A run's evaluations during training (module doc); inert when `eval_every` is 0.
+  """A run's evaluations during training (module doc); inert when `eval_every` is 0
+  or None.
   A context manager: `close` closes the CSV.
 
   Args:
@@ -99,7 +100,7 @@ class EvalCurve:
 
   def __init__(self, plan, start: int, resume: bool):
     cfg = plan.cfg
-    self.cfg, self.every, self.seconds, self.last = cfg, int(cfg.eval_every), 0.0, None
+    self.cfg, self.every, self.seconds, self.last = cfg, int(cfg.eval_every or 0), 0.0, None
     self.path = os.path.join(cfg.out_dir, CSV)
     self._file = None
     if not self.every:
