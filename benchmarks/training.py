@@ -11,7 +11,9 @@ transitions per second per agent, the first training step (and its loop time)
 at which an episode's return reached ``--threshold``, the final return
 (mean of the last episodes, as `train` computes it), and, with the host driver,
 where the loop's time went (summary.json's "host_seconds": act, learn, the env's
-step_async and step_wait, store; "env_seconds": the env's own parts).
+step_async and step_wait, store; "env_seconds": the env's own parts). With
+``--eval-every N`` (`train`'s evaluation during training), the evaluations'
+seconds and their share of the loop's wall time (`eval_seconds`, `eval_share`).
 
 The baseline in the same run: the learner alone (`dmcr_jax.benchmarks.learner`'s scanned
 updates of the same agents, batch, dtype and augmentation on full random
@@ -151,8 +153,19 @@ def run(train_argv: list[str], threshold: float, run_dir: str, baseline: bool = 
       time_to_threshold_s=hit and hit["wall_s"], interrupted=summary["interrupted"],
       host_seconds=summary.get("host_seconds"), env_seconds=summary.get("env_seconds"),
       steady=summary.get("steady"),
+      eval_every=cfg.eval_every or None, eval_seconds=summary.get("eval_seconds"),
+      eval_share=eval_share(summary),
       train_args=list(train_argv), run_dir=run_dir,
       time_utc=R.utc_now())
+
+
+def eval_share(summary: dict) -> float | None:
+  """The fraction of the loop's wall time its evaluations during training took
+  (`train --eval-every`; summary.json's "eval_seconds" over "wall_s"); None without
+  them."""
+  if summary.get("eval_seconds") is None or not summary.get("wall_s"):
+    return None
+  return summary["eval_seconds"] / summary["wall_s"]
 
 
 def check_device_counts(text: str, cfg) -> list[int]:
@@ -231,6 +244,8 @@ def markdown(rows: list[dict]) -> str:
       ("steady ms per vector step", _vector_step_text),
       ("first ≥ threshold (step, s)", _reached),
       ("final return", lambda r: R.fmt(r.get("final_return"), ".1f")),
+      ("eval s (share)", lambda r: "–" if r.get("eval_share") is None else
+       f"{r['eval_seconds']:,.1f} ({100 * r['eval_share']:.1f} %)"),
       ("UTC", lambda r: r["time_utc"][11:16])])
 
 

@@ -47,7 +47,7 @@ import os
 import sys
 
 from dmcr_jax.checks import positive_int
-from dmcr_jax.train.config import (AGENT_LOOPS, CPU_PHYSICS_MAX_ENVS, PHYSICS,
+from dmcr_jax.train.config import (AGENT_LOOPS, CPU_PHYSICS_MAX_ENVS, EVAL_RENDERERS, PHYSICS,
                                    PHYSICS_WORKERS_MAX, RENDERERS, RESUMABLE, TrainConfig,
                                    egl_devices_arg, load_config, resolve)
 from dmcr_jax.train.loop import train
@@ -147,6 +147,21 @@ def build_parser() -> argparse.ArgumentParser:
   p.add_argument("--log-every", type=int, default=d.log_every,
                  help="steps between progress updates; `train` makes it at most 2%% of "
                       "--steps (recorded in config.json)")
+  p.add_argument("--eval-every", type=int, default=d.eval_every,
+                 help="training steps per agent between evaluations during training: a "
+                      "reduced zero-shot protocol on the current agents (also at the last "
+                      "step), written as eval_curve.csv and eval_curve.png; 0: none")
+  p.add_argument("--eval-looks", type=int, default=d.eval_looks,
+                 help="--eval-every: held-out looks per condition")
+  p.add_argument("--eval-dynamics", type=int, default=d.eval_dynamics,
+                 help="--eval-every: initial states per held-out look")
+  p.add_argument("--eval-train-episodes", type=int, default=d.eval_train_episodes,
+                 help="--eval-every: episodes at the training looks (train return, E_G)")
+  p.add_argument("--eval-conditions", type=conditions_arg, default=None, metavar="C[,C…]",
+                 help="--eval-every: comma-separated conditions, e.g. none,all (default: "
+                      "every one that applies to the task)")
+  p.add_argument("--eval-renderer", default=d.eval_renderer, choices=EVAL_RENDERERS,
+                 help="--eval-every: jax (the ray caster) or pool (MuJoCo's pixels)")
   p.add_argument("--out", default=None, help="output folder (default: runs/<task>-<aug>)")
   p.add_argument("--resume", action="store_true",
                  help="continue the run in --out from its latest checkpoint, with the "
@@ -172,7 +187,11 @@ FLAG_FIELDS = {
     "workers": lambda c: c.workers, "egl_devices": lambda c: c.egl_devices,
     "dtype": lambda c: c.sac.compute_dtype,
     "agent_loop": lambda c: c.agent_loop, "checkpoint_every": lambda c: c.checkpoint_every,
-    "log_every": lambda c: c.log_every}
+    "log_every": lambda c: c.log_every, "eval_every": lambda c: c.eval_every,
+    "eval_looks": lambda c: c.eval_looks, "eval_dynamics": lambda c: c.eval_dynamics,
+    "eval_train_episodes": lambda c: c.eval_train_episodes,
+    "eval_conditions": lambda c: c.eval_conditions,
+    "eval_renderer": lambda c: c.eval_renderer}
 """Each flag's value in a `TrainConfig` (for `--resume`'s comparison)."""
 
 
@@ -192,6 +211,12 @@ def seeds_arg(text: str) -> tuple[int, ...]:
     raise argparse.ArgumentTypeError(
         f"want distinct ints in [0, 2**31) separated by commas, e.g. 0,1,2; got {text!r}")
   return tuple(int(p) for p in parts)
+
+
+def conditions_arg(text: str) -> tuple[str, ...]:
+  """A command line's `--eval-conditions` ("none,all") as a tuple of names (checked
+  against the task's conditions with the config)."""
+  return tuple(p.strip() for p in text.split(","))
 
 
 def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
@@ -224,7 +249,10 @@ def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
                       log_every=a.log_every,
                       checkpoint_every=a.checkpoint_every, agent_loop=a.agent_loop,
                       renderer=a.renderer, chunk_steps=a.chunk_steps, physics=a.physics,
-                      physics_workers=a.physics_workers,
+                      physics_workers=a.physics_workers, eval_every=a.eval_every,
+                      eval_looks=a.eval_looks, eval_dynamics=a.eval_dynamics,
+                      eval_train_episodes=a.eval_train_episodes,
+                      eval_conditions=a.eval_conditions, eval_renderer=a.eval_renderer,
                       out_dir=a.out or default_out(a.task, sac_cfg),
                       sac=sac_cfg)
     if a.resume:

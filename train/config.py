@@ -56,10 +56,13 @@ CPU_PHYSICS_MAX_ENVS = 64
 PHYSICS_WORKERS_MAX = 8
 """The most physics worker processes `default_physics_workers` gives a run."""
 RESUMABLE = ("steps", "checkpoint_every", "log_every", "workers", "physics_workers",
-             "egl_devices")
+             "egl_devices", "eval_every", "eval_looks", "eval_dynamics",
+             "eval_train_episodes", "eval_conditions", "eval_renderer")
 """`TrainConfig` fields a resumed run may change (a larger `steps` extends it; the
 others change neither the agents nor the data); `out_dir` may name the folder
 differently. Every other field must equal the run's config.json."""
+EVAL_RENDERERS = ("jax", "pool")
+"""What `TrainConfig.eval_renderer` accepts."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,6 +114,16 @@ class TrainConfig:
       `default_physics_workers`).
     out_dir: where the CSV, the PNG and the checkpoints go.
     sac: the learner's hyperparameters.
+    eval_every: training steps per agent between evaluations during training
+      (`dmcr_jax.train.eval_curve`: a reduced protocol on the current agents,
+      also at the last step; 0 or None: none).
+    eval_looks: held-out looks per condition of those evaluations.
+    eval_dynamics: initial states per held-out look.
+    eval_train_episodes: episodes at each agent's training looks (the train
+      return and E_G), at most eval_looks · eval_dynamics.
+    eval_conditions: the conditions evaluated (None: every one that applies,
+      `dmcr_jax.protocol.conditions_for`).
+    eval_renderer: "jax" (the ray caster) or "pool" (MuJoCo's pixels).
   """
   task: str = "cartpole-balance"
   steps: int = 50_000
@@ -136,6 +149,12 @@ class TrainConfig:
   physics: str = "auto"
   physics_workers: int | None = None
   sac: sac.SACConfig = sac.SACConfig()
+  eval_every: int = 0
+  eval_looks: int = 10
+  eval_dynamics: int = 1
+  eval_train_episodes: int = 10
+  eval_conditions: tuple[str, ...] | None = None
+  eval_renderer: str = "jax"
 
   def __post_init__(self):
     if self.image_size is None:
@@ -322,12 +341,41 @@ def check_config(cfg: TrainConfig) -> None:
   if cfg.agent_loop is not None and cfg.agent_loop not in AGENT_LOOPS:
     raise ValueError(f"agent_loop must be one of {', '.join(AGENT_LOOPS)}, got "
                      f"{cfg.agent_loop!r}")
+  check_eval(cfg)
   if cfg.image_size < 16:
     raise ValueError(f"image_size must be >= 16 for the encoder, got {cfg.image_size}")
   if cfg.sac.algo == "curl" and cfg.image_size <= cfg.sac.curl_crop:
     raise ValueError(f"CURL crops {cfg.sac.curl_crop}-pixel windows: image_size must be "
                      f"> curl_crop ({cfg.sac.curl_crop}; CURL renders "
                      f"{cfg.sac.curl_crop + 16}), got {cfg.image_size}")
+
+
+def check_eval(cfg: TrainConfig) -> None:
+  """ValueError naming the problem with the evaluation-during-training fields
+  (`eval_every` and the reduced protocol's options)."""
+  from dmcr_jax.protocol_plan import conditions_for
+  if cfg.eval_every is not None and (
+      isinstance(cfg.eval_every, bool) or not isinstance(cfg.eval_every, (int, np.integer))
+      or cfg.eval_every < 0):
+    raise ValueError(f"eval_every must be an int >= 0 (0 or None: no evaluation during "
+                     f"training), got {cfg.eval_every!r}")
+  for name in ("eval_looks", "eval_dynamics", "eval_train_episodes"):
+    positive_int(name, getattr(cfg, name))
+  if cfg.eval_train_episodes > cfg.eval_looks * cfg.eval_dynamics:
+    raise ValueError(f"eval_train_episodes ({cfg.eval_train_episodes}) must be at most "
+                     f"eval_looks · eval_dynamics = {cfg.eval_looks * cfg.eval_dynamics}")
+  if cfg.eval_renderer not in EVAL_RENDERERS:
+    raise ValueError(f"eval_renderer must be one of {', '.join(EVAL_RENDERERS)}, got "
+                     f"{cfg.eval_renderer!r}")
+  if cfg.eval_conditions is not None:
+    valid = conditions_for(cfg.task)
+    given = tuple(cfg.eval_conditions)
+    bad = [c for c in given if c not in valid]
+    if bad or not given or len(set(given)) != len(given):
+      why = (f"{', '.join(map(repr, bad))} not valid" if bad else
+             "empty" if not given else "a condition named twice")
+      raise ValueError(f"eval_conditions {','.join(given)!r}: {why} for {cfg.task}; valid: "
+                       f"{', '.join(valid)} (comma-separated, each once)")
 
 
 def check_resume(saved: TrainConfig, cfg: TrainConfig) -> None:
@@ -361,8 +409,9 @@ def load_config(out_dir: str) -> TrainConfig:
     raise ValueError(f"{path} is not a readable run config (damaged JSON: {e}): restore it "
                      "from a copy, or start a new run in another folder") from None
   raw["seeds"] = tuple(raw["seeds"])
-  if raw.get("egl_devices") is not None:
-    raw["egl_devices"] = tuple(raw["egl_devices"])
+  for name in ("egl_devices", "eval_conditions"):
+    if raw.get(name) is not None:
+      raw[name] = tuple(raw[name])
   # Fields a later version removed (execution modes that did not pay) are dropped.
   raw["sac"] = sac.SACConfig.from_dict(raw["sac"])
   known = {f.name for f in dataclasses.fields(TrainConfig)}

@@ -46,7 +46,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dmcr_jax.train import checkpoint, config, replay, runlog
+from dmcr_jax.train import checkpoint, config, eval_curve, replay, runlog
 from dmcr_jax.train import step as train_step
 # Names other modules and earlier code reach through this module.
 from dmcr_jax.train.checkpoint import init_agents, load_run  # noqa: F401
@@ -294,7 +294,8 @@ def train(cfg: TrainConfig | Plan, resume: bool = False, progress: bool = True,
   episode: step, agent, seed, augmentation, return, wall time, transitions/s and
   the latest update metrics), `<out_dir>/learning_curve.png`, segments.json and
   summary.json (with the host driver also `HostTimes.summary`) and the
-  checkpoints. A resumed run whose checkpoint is at `steps` already returns its
+  checkpoints; with `eval_every`, eval_curve.csv and eval_curve.png
+  (`dmcr_jax.train.eval_curve`; summary.json's "eval_seconds"). A resumed run whose checkpoint is at `steps` already returns its
   summary at once.
 
   Args:
@@ -341,6 +342,7 @@ def train(cfg: TrainConfig | Plan, resume: bool = False, progress: bool = True,
     manager = checkpoint.manager(cfg.out_dir)
     log = stack.enter_context(runlog.RunLog(cfg, plan.agents, plan.look_labels, start,
                                             resume, progress))
+    curve = stack.enter_context(eval_curve.EvalCurve(plan, start, resume))
     step = start
     for before, step, episodes, learner in steps:   # the stepper ends at `steps`
       log.report(before, step, episodes)
@@ -349,8 +351,12 @@ def train(cfg: TrainConfig | Plan, resume: bool = False, progress: bool = True,
         log.checkpointed(step)
       if log.stopped:
         break
+      if curve.due(before, step):
+        curve.evaluate(step, learner.agents)
     if log.stopped:
       print(f"interrupted: saved checkpoint at step {step} in "
             f"{os.path.join(checkpoint.folder(cfg.out_dir), str(step))}; resume with "
             f"dmcr-train --resume --out {cfg.out_dir}", file=sys.stderr, flush=True)
-    return runlog.finish(cfg, step, log, times.summary(step) if times else None)
+    curve.close()  # eval_curve.png
+    return runlog.finish(cfg, step, log,
+                         dict(times.summary(step) if times else {}, **curve.summary()))
