@@ -32,6 +32,13 @@ def expected(n):
   return np.broadcast_to((np.arange(n) * 10.0 + 1)[:, None, None], (n, 2, 3))
 
 
+def arm(pool, tmp_path, n, row, mode):
+  """Fills `n` inputs with row `row` in fault `mode`, and arms the fault (its marker file)."""
+  fill(pool, n)
+  pool.inputs["mode"][row] = mode
+  open(tmp_path / "fault", "w").close()
+
+
 def alive(pid):
   try:
     os.kill(pid, 0)
@@ -91,9 +98,7 @@ def test_worker_busy_past_the_call_timeout_is_replaced(tmp_path, capfd):
   # Its heartbeat goes on (the thread that sends it is not the one that hangs).
   with make_pool(tmp_path, workers=2, call_timeout=3.0)[0] as pool:
     n = 8
-    fill(pool, n)
-    pool.inputs["mode"][1] = fx.HANG
-    open(tmp_path / "fault", "w").close()
+    arm(pool, tmp_path, n, 1, fx.HANG)
     np.testing.assert_array_equal(pool.run(n), expected(n))
     assert pool.restarts == 1
   err = capfd.readouterr().err
@@ -124,9 +129,7 @@ def test_slow_worker_that_keeps_its_heartbeat_is_not_replaced(tmp_path, capfd):
   # A call longer than the timeout (a big slice, a first compilation) is no hang.
   with make_pool(tmp_path, workers=2, timeout=1.0)[0] as pool:
     n = 4
-    fill(pool, n)
-    pool.inputs["mode"][3] = fx.SLOW
-    open(tmp_path / "fault", "w").close()
+    arm(pool, tmp_path, n, 3, fx.SLOW)
     t0 = time.monotonic()
     np.testing.assert_array_equal(pool.run(n), expected(n))
     assert time.monotonic() - t0 >= fx.SLOW_S
