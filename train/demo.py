@@ -230,8 +230,8 @@ def report(demo: Demo, result: dict) -> str:
       f"With {demo.eval_looks * demo.eval_states} episodes per condition the E_G column "
       "is noise.",
       "",
-      "The full-size run (the paper's settings; a GPU: see the README's Training and "
-      "Evaluation sections for what it takes):"]
+      "The full-size run (the paper's settings; a GPU: see docs/training.md and "
+      "docs/evaluation.md for what it takes):"]
   lines += [f"  {c}" for c in full_size_commands(demo.task)]
   return "\n".join(lines)
 
