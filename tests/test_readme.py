@@ -18,6 +18,11 @@ import sys
 
 import pytest
 
+# One worker runs the snippets one after another, so that snippets making the same
+# env (the README's and docs/envs.md's pool env) load each other's compiled programs
+# from the session's compilation cache instead of compiling them side by side.
+pytestmark = pytest.mark.xdist_group("readme")
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TINY_SIZES = re.compile(r"\b(1024|4096|256)\b")
 
