@@ -60,13 +60,20 @@ def _dead(pid: int) -> bool:
     return True
 
 
+def _start(end: str, use: str) -> subprocess.Popen:
+  return subprocess.Popen([sys.executable, "-c", CHILD, end, use], stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE, text=True, start_new_session=True)
+
+
 @pytest.fixture(scope="module")
 def children():
-  """The four endings' scripts, started at once (they build their envs side by side)."""
-  procs = {name: subprocess.Popen([sys.executable, "-c", CHILD, end, use],
-                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                  start_new_session=True)
-           for name, (end, use, _, _) in ENDINGS.items()}
+  """The four endings' scripts: "end" first, the others once it has built and reset its
+  envs (its compiled programs are then in the session's compilation cache, which the
+  other resetting script loads instead of compiling them again)."""
+  procs = {"end": _start(*ENDINGS["end"][:2])}
+  select.select([procs["end"].stdout], [], [], START_S)   # its first line, not read here
+  procs.update({name: _start(end, use) for name, (end, use, _, _) in ENDINGS.items()
+                if name not in procs})
   yield procs
   for proc in procs.values():   # whatever a failed test left running
     if proc.poll() is None:
