@@ -211,6 +211,8 @@ def test_reports_reach_tensorboard_and_wandb_as_log_csv_holds_them(tmp_path, mon
   tb = read_tensorboard(os.path.join(out, loggers.TENSORBOARD_DIR, names[0]))
   assert tb["episode/return"] == [(10, 2.0), (30, 6.0), (40, 8.0)]
   assert tb["eval/all"] == []  # step 30's evaluation belonged to the dropped past
+  other = read_tensorboard(os.path.join(out, loggers.TENSORBOARD_DIR, names[1]))
+  assert other["episode/return"] == [(10, 5.0), (20, 7.0)]  # the checkpoint's step is kept
   with open(os.path.join(out, loggers.WANDB_RUNS)) as f:
     assert json.load(f) == ids
   resumed = read_wandb(out)[ids["0"]]

@@ -182,8 +182,9 @@ def eval_values(rows) -> dict[int, dict[str, float]]:
 
 class TensorBoardLogger:
   """Event files of one run, one folder per agent under `<out>/tensorboard/`
-  (tensorboardX). A resumed run (`purge_step`, the restored checkpoint) appends to
-  the same folders, and TensorBoard drops the earlier events past that step."""
+  (tensorboardX). A resumed run appends to the same folders, and TensorBoard drops
+  the earlier events at `purge_step` (the step after the restored checkpoint) and
+  past it."""
 
   def __init__(self, out_dir: str, names: list[str], purge_step: int | None = None):
     from tensorboardX import SummaryWriter
@@ -293,7 +294,8 @@ def open_loggers(cfg, specs, looks, start: int, resume: bool) -> list[Logger]:
   try:
     for name in getattr(cfg, "loggers", ("csv",)):
       if name == "tensorboard":
-        sinks.append(TensorBoardLogger(cfg.out_dir, names, start if resume else None))
+        # Events past the restored checkpoint are dropped (log.csv keeps step `start`).
+        sinks.append(TensorBoardLogger(cfg.out_dir, names, start + 1 if resume else None))
       elif name == "wandb":
         sinks.append(WandbLogger(cfg.out_dir, names, hp, resume))
         continue  # its config came with the runs
