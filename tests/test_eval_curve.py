@@ -41,7 +41,7 @@ def read(path):
 
 def offline_wandb(mp, tmp):
   """No W&B key, mode or netrc in the environment (`mp`: a MonkeyPatch): offline."""
-  for var in ("WANDB_API_KEY", "WANDB_MODE", "WANDB_PROJECT"):
+  for var in ("WANDB_API_KEY", "WANDB_MODE", "WANDB_PROJECT", "WANDB_RUN_GROUP"):
     mp.delenv(var, raising=False)
   mp.setenv("NETRC", os.path.join(str(tmp), "no-netrc"))
 

@@ -133,7 +133,7 @@ def test_wandb_is_offline_without_a_key_unless_told(tmp_path):
 
 def offline_wandb(monkeypatch, tmp_path):
   """No API key and no netrc: `wandb_mode` picks offline."""
-  for var in ("WANDB_API_KEY", "WANDB_MODE", "WANDB_PROJECT"):
+  for var in ("WANDB_API_KEY", "WANDB_MODE", "WANDB_PROJECT", "WANDB_RUN_GROUP"):
     monkeypatch.delenv(var, raising=False)
   monkeypatch.setenv("NETRC", str(tmp_path / "no-netrc"))
 

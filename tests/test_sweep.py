@@ -112,6 +112,7 @@ steps = 2000
   assert {c.steps for c, r in zip(cfgs, runs) if r.task == "cartpole-balance"} == {1000}
   assert all(c.seeds == (0, 1, 2) and c.out_dir == r.out_dir for c, r in zip(cfgs, runs))
   assert cfgs[2].visual_seeds == "levels:10" and cfgs[0].loggers == ("csv", "tensorboard")
+  assert runs[2].group == "sweep/cartpole-balance-drq-levels10"  # W&B: seeds apart, one group
   sw.main([write(tmp_path, text), "--out", out, "--dry-run"])
   lines = capsys.readouterr().out.splitlines()
   assert lines[0].startswith("cartpole-balance-drq-s0_1_2-v0 [new]: dmcr-train --task "

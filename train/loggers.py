@@ -27,8 +27,9 @@ TensorBoard draws runs of one tag in one chart, in its own colours, and W&B
 overlays the runs of a group in one panel and can average them over seeds, so
 agents compare at a glance; with tag prefixes each agent would get its own chart.
 TensorBoard: one folder per agent under `<out>/tensorboard/`. W&B: one run per
-agent, grouped by the run folder's name, in project WANDB_PROJECT (default
-"dmcr_jax"), files under `<out>/wandb/`; mode WANDB_MODE when set, else
+agent, grouped by WANDB_RUN_GROUP or else the run folder's name (`dmcr-sweep` groups
+a method's runs across seeds), in project WANDB_PROJECT (default "dmcr_jax"), files
+under `<out>/wandb/`; mode WANDB_MODE when set, else
 "online" with an API key (WANDB_API_KEY or `wandb login`'s netrc entry), else
 "offline" (`wandb sync <out>/wandb/offline-run-*` uploads it later).
 
@@ -240,7 +241,7 @@ class WandbLogger:
     if resume and os.path.exists(path):
       with open(path) as f:
         ids = json.load(f)
-    group = os.path.basename(os.path.abspath(out_dir))
+    group = os.environ.get("WANDB_RUN_GROUP") or os.path.basename(os.path.abspath(out_dir))
     project = os.environ.get("WANDB_PROJECT", "dmcr_jax")
     self.runs = []
     for k, name in enumerate(names):

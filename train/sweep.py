@@ -87,6 +87,8 @@ class Run:
     task, look: its task and `--visual-seeds` value.
     train_argv: its `dmcr-train` arguments (without --resume).
     eval_options: its `dmcr_jax.train.evaluate.EvalConfig` fields.
+    group: its W&B group (`--logger wandb`): the sweep folder's name, the method and
+      the looks, so that seeds trained apart share one group.
   """
   name: str
   out_dir: str
@@ -94,6 +96,7 @@ class Run:
   look: str
   train_argv: tuple[str, ...]
   eval_options: tuple[tuple[str, object], ...]
+  group: str = ""
 
   @property
   def eval_json(self) -> str:
@@ -319,7 +322,9 @@ def plan(spec: dict, default_out: str) -> tuple[str, list[Run]]:
           folder = os.path.join(out, name)
           runs.append(Run(name=name, out_dir=folder, task=task, look=str(look),
                           train_argv=tuple(argv + ["--out", folder]),
-                          eval_options=tuple(sorted(ev.items()))))
+                          eval_options=tuple(sorted(ev.items())),
+                          group=f"{os.path.basename(os.path.abspath(out))}/{method}-"
+                                f"{_look_part(look)}"))
   if len({r.name for r in runs}) != len(runs):
     raise SpecError("sweep spec: two runs share a folder name; make tasks, seeds, augs "
                     "and looks distinct")
@@ -341,7 +346,13 @@ def run_one(run: Run, progress: bool = False) -> dict:
     resume = state == "resume"
     argv = list(run.train_argv) + (["--resume"] if resume else [])
     _, args = parse(argv)
-    summary = train(args.plan, resume=resume, progress=progress)
+    group = {"WANDB_RUN_GROUP": run.group} if "WANDB_RUN_GROUP" not in os.environ else {}
+    os.environ.update(group)
+    try:
+      summary = train(args.plan, resume=resume, progress=progress)
+    finally:
+      for key in group:
+        os.environ.pop(key, None)
     if summary["interrupted"]:
       return dict(result, interrupted=True)
   if state != "done":
