@@ -39,11 +39,22 @@ def read(path):
     return list(csv.DictReader(f))
 
 
+def offline_wandb(mp, tmp):
+  """No W&B key, mode or netrc in the environment (`mp`: a MonkeyPatch): offline."""
+  for var in ("WANDB_API_KEY", "WANDB_MODE", "WANDB_PROJECT", "WANDB_RUN_GROUP"):
+    mp.delenv(var, raising=False)
+  mp.setenv("NETRC", os.path.join(str(tmp), "no-netrc"))
+
+
 @pytest.fixture(scope="module")
 def eval_run(tmp_path_factory):
-  """A finished tiny run with evaluations; its config, summary and stderr."""
-  cfg = tiny_config(tmp_path_factory.mktemp("eval") / "run")
-  summary = loop.train(cfg, progress=False)
+  """A finished tiny run with evaluations, logged to TensorBoard and an offline W&B
+  run too; its config and summary."""
+  out = tmp_path_factory.mktemp("eval") / "run"
+  cfg = tiny_config(out, loggers=("csv", "tensorboard", "wandb"))
+  with pytest.MonkeyPatch.context() as mp:
+    offline_wandb(mp, out.parent)
+    summary = loop.train(cfg, progress=False)
   return cfg, summary
 
 
@@ -89,6 +100,37 @@ def test_eval_curve_returns_equal_the_protocol_on_the_checkpointed_agents(eval_r
                                                            abs=1e-3)
       assert float(mine[c]["train_return"]) == pytest.approx(float(result.train_mean[0]),
                                                             abs=1e-3)
+
+
+@pytest.mark.slow
+def test_the_runs_tensorboard_and_wandb_curves_equal_its_csvs(eval_run):
+  from dmcr_jax.train import loggers
+  from tests.test_loggers import read_tensorboard, read_wandb
+  cfg, _ = eval_run
+  episodes = read(os.path.join(cfg.out_dir, "log.csv"))
+  evals = read(os.path.join(cfg.out_dir, eval_curve.CSV))
+  assert episodes and evals
+  steps = sorted({int(r["step"]) for r in episodes})
+  returns = [sum(float(r["episode_return"]) for r in episodes if int(r["step"]) == s)
+             / sum(int(r["step"]) == s for r in episodes) for s in steps]
+  tb = read_tensorboard(os.path.join(cfg.out_dir, loggers.TENSORBOARD_DIR, "agent_0-seed_0-drq"))
+  assert [s for s, _ in tb["episode/return"]] == steps
+  assert [v for _, v in tb["episode/return"]] == pytest.approx(returns, rel=1e-6)
+  q = {int(r["step"]): float(r["q"]) for r in episodes if r["q"]}
+  assert q and dict(tb["train/q"]) == pytest.approx(q, rel=1e-6)
+  assert "train/entropy" in tb and "train/alpha_loss" in tb  # beyond log.csv's columns
+  for c in ("none", "all"):
+    want = [(int(r["step"]), float(r["mean_return"])) for r in evals if r["condition"] == c]
+    assert tb[f"eval/{c}"] == [(s, pytest.approx(v, rel=1e-6)) for s, v in want]
+  assert tb["_hparams"]["task"] == "cartpole-balance" and tb["_hparams"]["eval_every"] == 20
+  (run,) = read_wandb(cfg.out_dir).values()
+  history = [h for h in run["history"] if "episode/return" in h]
+  assert [(h["step"], h["episode/return"]) for h in history] == pytest.approx(
+      list(zip(steps, returns)))
+  assert [(h["step"], h["eval/all"]) for h in run["history"] if "eval/all" in h] == [
+      (int(r["step"]), pytest.approx(float(r["mean_return"]))) for r in evals
+      if r["condition"] == "all"]
+  assert run["config"]["task"] == "cartpole-balance"
 
 
 @pytest.mark.parametrize("off", [0, None])
@@ -181,9 +223,18 @@ def test_a_run_resumed_from_an_earlier_checkpoint_evaluates_from_there_again(eva
   before = read(os.path.join(out, eval_curve.CSV))
   shutil.rmtree(os.path.join(checkpoint.folder(out), "48"))  # as if killed before it
   resumed = dataclasses.replace(cfg, out_dir=out)
-  summary = loop.train(resumed, resume=True, progress=False)
+  with pytest.MonkeyPatch.context() as mp:
+    offline_wandb(mp, tmp_path)
+    summary = loop.train(resumed, resume=True, progress=False)
   rows = read(os.path.join(out, eval_curve.CSV))
   assert [int(r["step"]) for r in rows] == [24, 24, 48, 48]  # 48 once, not twice
   assert rows[:2] == before[:2]
   # The same agents' evaluation at 24 is kept; 48's comes from the resumed training.
   assert summary["eval_seconds"] == pytest.approx(float(rows[-1]["eval_s"]), abs=0.01)
+  # The event files continue in place, without the steps past 24 logged before.
+  from dmcr_jax.train import loggers
+  from tests.test_loggers import read_tensorboard
+  tb = read_tensorboard(os.path.join(out, loggers.TENSORBOARD_DIR, "agent_0-seed_0-drq"))
+  assert [s for s, _ in tb["eval/all"]] == [24, 48]
+  assert [s for s, _ in tb["episode/return"]] == sorted(
+      {int(r["step"]) for r in read(os.path.join(out, "log.csv"))})

@@ -50,6 +50,7 @@ from dmcr_jax.checks import positive_int
 from dmcr_jax.train.config import (AGENT_LOOPS, CPU_PHYSICS_MAX_ENVS, EVAL_RENDERERS, PHYSICS,
                                    PHYSICS_WORKERS_MAX, RENDERERS, RESUMABLE, TrainConfig,
                                    egl_devices_arg, load_config, resolve)
+from dmcr_jax.train.loggers import parse_loggers
 from dmcr_jax.train.loop import train
 from dmcr_jax.train.runlog import progress_every
 from dmcr_jax.train.sac import ALGOS, COMPUTE_DTYPES, SACConfig
@@ -162,6 +163,12 @@ def build_parser() -> argparse.ArgumentParser:
                       "every one that applies to the task)")
   p.add_argument("--eval-renderer", default=d.eval_renderer, choices=EVAL_RENDERERS,
                  help="--eval-every: jax (the ray caster) or pool (MuJoCo's pixels)")
+  p.add_argument("--logger", "--loggers", dest="loggers", type=loggers_arg, default="csv",
+                 metavar="L[,L…]",
+                 help="where the curves go, comma-separated: csv (log.csv, always written), "
+                      "tensorboard (event files in OUT/tensorboard, one run per agent; "
+                      "needs tensorboardX), wandb (Weights & Biases, one run per agent, "
+                      "offline without an API key; needs wandb)")
   p.add_argument("--out", default=None, help="output folder (default: runs/<task>-<aug>)")
   p.add_argument("--resume", action="store_true",
                  help="continue the run in --out from its latest checkpoint, with the "
@@ -191,7 +198,7 @@ FLAG_FIELDS = {
     "eval_looks": lambda c: c.eval_looks, "eval_dynamics": lambda c: c.eval_dynamics,
     "eval_train_episodes": lambda c: c.eval_train_episodes,
     "eval_conditions": lambda c: c.eval_conditions,
-    "eval_renderer": lambda c: c.eval_renderer}
+    "eval_renderer": lambda c: c.eval_renderer, "loggers": lambda c: tuple(c.loggers)}
 """Each flag's value in a `TrainConfig` (for `--resume`'s comparison)."""
 
 
@@ -211,6 +218,16 @@ def seeds_arg(text: str) -> tuple[int, ...]:
     raise argparse.ArgumentTypeError(
         f"want distinct ints in [0, 2**31) separated by commas, e.g. 0,1,2; got {text!r}")
   return tuple(int(p) for p in parts)
+
+
+def loggers_arg(text: str) -> tuple[str, ...]:
+  """A command line's `--logger` ("csv,tensorboard") as `TrainConfig.loggers` (an
+  argparse type: an unknown name is reported as the flag's error, naming the valid
+  ones; `dmcr_jax.train.loggers.parse_loggers`)."""
+  try:
+    return parse_loggers(text)
+  except ValueError as e:
+    raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def conditions_arg(text: str) -> tuple[str, ...]:
@@ -253,6 +270,7 @@ def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
                       eval_looks=a.eval_looks, eval_dynamics=a.eval_dynamics,
                       eval_train_episodes=a.eval_train_episodes,
                       eval_conditions=a.eval_conditions, eval_renderer=a.eval_renderer,
+                      loggers=a.loggers,
                       out_dir=a.out or default_out(a.task, sac_cfg),
                       sac=sac_cfg)
     if a.resume:

@@ -57,7 +57,7 @@ PHYSICS_WORKERS_MAX = 8
 """The most physics worker processes `default_physics_workers` gives a run."""
 RESUMABLE = ("steps", "checkpoint_every", "log_every", "workers", "physics_workers",
              "egl_devices", "eval_every", "eval_looks", "eval_dynamics",
-             "eval_train_episodes", "eval_conditions", "eval_renderer")
+             "eval_train_episodes", "eval_conditions", "eval_renderer", "loggers")
 """`TrainConfig` fields a resumed run may change (a larger `steps` extends it; the
 others change neither the agents nor the data); `out_dir` may name the folder
 differently. Every other field must equal the run's config.json."""
@@ -124,6 +124,8 @@ class TrainConfig:
     eval_conditions: the conditions evaluated (None: every one that applies,
       `dmcr_jax.protocol.conditions_for`).
     eval_renderer: "jax" (the ray caster) or "pool" (MuJoCo's pixels).
+    loggers: where the curves go (`dmcr_jax.train.loggers.LOGGERS`): "csv" (log.csv,
+      always written), "tensorboard" (event files), "wandb" (Weights & Biases).
   """
   task: str = "cartpole-balance"
   steps: int = 50_000
@@ -155,6 +157,7 @@ class TrainConfig:
   eval_train_episodes: int = 10
   eval_conditions: tuple[str, ...] | None = None
   eval_renderer: str = "jax"
+  loggers: tuple[str, ...] = ("csv",)
 
   def __post_init__(self):
     if self.image_size is None:
@@ -342,6 +345,8 @@ def check_config(cfg: TrainConfig) -> None:
     raise ValueError(f"agent_loop must be one of {', '.join(AGENT_LOOPS)}, got "
                      f"{cfg.agent_loop!r}")
   check_eval(cfg)
+  from dmcr_jax.train.loggers import check_loggers
+  check_loggers(cfg.loggers)
   if cfg.image_size < 16:
     raise ValueError(f"image_size must be >= 16 for the encoder, got {cfg.image_size}")
   if cfg.sac.algo == "curl" and cfg.image_size <= cfg.sac.curl_crop:
@@ -409,7 +414,7 @@ def load_config(out_dir: str) -> TrainConfig:
     raise ValueError(f"{path} is not a readable run config (damaged JSON: {e}): restore it "
                      "from a copy, or start a new run in another folder") from None
   raw["seeds"] = tuple(raw["seeds"])
-  for name in ("egl_devices", "eval_conditions"):
+  for name in ("egl_devices", "eval_conditions", "loggers"):
     if raw.get(name) is not None:
       raw[name] = tuple(raw[name])
   # Fields a later version removed (execution modes that did not pay) are dropped.

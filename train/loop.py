@@ -352,7 +352,7 @@ def train(cfg: TrainConfig | Plan, resume: bool = False, progress: bool = True,
       if log.stopped:
         break
       if curve.due(before, step):
-        curve.evaluate(step, learner.agents)
+        log.evaluated(curve.evaluate(step, learner.agents))
     if log.stopped:
       print(f"interrupted: saved checkpoint at step {step} in "
             f"{os.path.join(checkpoint.folder(cfg.out_dir), str(step))}; resume with "

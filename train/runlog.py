@@ -2,10 +2,12 @@
 
 `RunLog` is the one place a run reports to between steps (or chunks): `report`
 (a driver's step and its finished episodes) logs each episode (a row of
-`<out>/log.csv`, flushed at once) and moves the progress (a tqdm bar on a
-terminal, else a progress line on stderr every few percent); `checkpointed`
-records each checkpoint (`<out>/segments.json`); `stopped` is the flag that
-SIGINT/SIGTERM set.
+`<out>/log.csv`, flushed at once; the episodes' scalars to the run's other
+sinks, `dmcr_jax.train.loggers`) and moves the progress (a tqdm bar on a
+terminal, else a progress line on stderr every few percent); `evaluated` passes
+an evaluation during training to those sinks; `checkpointed` records each
+checkpoint (`<out>/segments.json`); `stopped` is the flag that SIGINT/SIGTERM
+set.
 
 The log is the run's truth: a resumed run first drops the rows logged past
 the checkpoint it restored (a killed process logs episodes after its last
@@ -141,6 +143,13 @@ class RunLog:
     if progress and sys.stderr.isatty():
       from tqdm.auto import tqdm
       self._bar = tqdm(total=cfg.steps, initial=start, desc=cfg.task, unit="step")
+    from dmcr_jax.train import loggers
+    self.sinks = []
+    try:
+      self.sinks = loggers.open_loggers(cfg, self.specs, self.looks, start, resume)
+    except BaseException:
+      self.close()
+      raise
     self.t0 = time.perf_counter()
     self.recent: list[float] = []
 
@@ -154,10 +163,10 @@ class RunLog:
     return time.perf_counter() - self.t0
 
   def episode(self, step: int, agent: int, episode_return: float, wall: float,
-              metrics: dict) -> None:
+              metrics: dict) -> dict:
     """One finished episode of `agent` at `step` (`wall`: this segment's seconds;
     metrics: name → (K,) latest update means; NaN entries, no update yet, are
-    left out)."""
+    left out); its log.csv row."""
     self.recent.append(episode_return)
     row = dict(step=step, agent=agent, seed=self.specs[agent][0], aug=self.specs[agent][1],
                episode_return=episode_return, wall_s=round(self.offset + wall, 2),
@@ -172,16 +181,37 @@ class RunLog:
     self._file.flush()
     if self._bar is not None and step > self._bar.n:
       self._bar.update(min(step, self.cfg.steps) - self._bar.n)
+    return row
 
   def report(self, before: int, step: int, episodes) -> None:
     """The one call a driver makes per step (or chunk) that moved the run from
     `before` to `step`: each finished episode (step, agent, return, update
-    metrics) logged, then the progress when `due`."""
+    metrics) logged, the sinks given each agent's episodes per step
+    (`dmcr_jax.train.loggers.episode_values`), then the progress when `due`."""
+    from dmcr_jax.train.loggers import episode_values
     wall = self.wall()
+    ended: dict[tuple[int, int], list] = {}
     for at, agent, episode_return, metrics in episodes:
-      self.episode(at, agent, episode_return, wall, metrics)
+      row = self.episode(at, agent, episode_return, wall, metrics)
+      ended.setdefault((at, agent), []).append((row, metrics))
+    for (at, agent), done in ended.items():
+      values = episode_values(done[-1][0], done[-1][1], agent,
+                              [r["episode_return"] for r, _ in done])
+      for sink in self.sinks:
+        sink.scalars(agent, at, values)
     if self.due(before, step):
       self.progress(step)
+
+  def evaluated(self, rows) -> None:
+    """An evaluation during training (`dmcr_jax.train.eval_curve.EvalCurve.evaluate`'s
+    rows, one step) given to the sinks (`dmcr_jax.train.loggers.eval_values`)."""
+    from dmcr_jax.train.loggers import eval_values
+    if not rows:
+      return
+    step = int(rows[0]["step"])
+    for agent, values in eval_values(rows).items():
+      for sink in self.sinks:
+        sink.scalars(agent, step, values)
 
   def due(self, before: int, step: int) -> bool:
     """Whether the loop should call `progress` after moving from `before` to `step`:
@@ -222,6 +252,9 @@ class RunLog:
     for s, handler in self._previous.items():
       signal.signal(s, handler)
     self._file.close()
+    for sink in self.sinks:
+      sink.close()
+    self.sinks = []
     if self._bar is not None:
       self._bar.close()
 
