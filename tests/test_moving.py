@@ -197,3 +197,71 @@ def _data(rm):
   d = mujoco.MjData(rm.model)
   mujoco.mj_forward(rm.model, d)
   return d
+
+
+KW = dict(num_envs=2, visual_seeds=[0, 5], vary="all", frame_skip=100, image_size=16,
+          frame_stack=1, seed=3)
+PENDULUM_MOVING = M.check_moving("pendulum", "all")[0]
+
+
+def _rollout(**extra):
+  """12 steps (an episode is 10: one auto-reset) of 2 pendulum envs: frames, rewards,
+  states, episode steps and qpos."""
+  rng = np.random.default_rng(0)
+  with dmcr_jax.make("pendulum-swingup", **KW, **extra) as env:
+    obs, info = env.reset(seed=1)
+    out = dict(obs=[obs], reward=[], state=[info["state"]], step=[info["episode_step"]],
+               qpos=[np.asarray(env.state.task.data.qpos)])
+    for _ in range(12):
+      obs, reward, _, _, info = env.step(rng.uniform(-1, 1, (2, 1)).astype(np.float32))
+      out["obs"].append(np.asarray(obs))
+      out["reward"].append(reward)
+      out["state"].append(info["state"])
+      out["step"].append(info["episode_step"])
+      out["qpos"].append(np.asarray(env.state.task.data.qpos))
+  return out
+
+
+@pytest.fixture(scope="module")
+def pool_runs():
+  return (_rollout(renderer="pool", workers=1),
+          _rollout(renderer="pool", workers=1, moving="all", intensity=0.3))
+
+
+@pytest.mark.slow
+def test_moving_pool_env_keeps_the_physics_and_draws_each_steps_look(pool_runs):
+  """Moving looks change the frames, not the physics or rewards; the pool's frames are
+  MuJoCo's render of each step's look (`look_at` of the seed and episode step; a
+  blended sky as the blend of two renders)."""
+  static, pool = pool_runs
+  np.testing.assert_array_equal(pool["reward"], static["reward"])
+  np.testing.assert_array_equal(pool["state"], static["state"])
+  rm = rmod.build_render_model("pendulum")
+  with rmod.FrameRenderer(rm, 16, 16) as fr:
+    for t in (3, 11):
+      looks = rmod.prepare(rm, M.look_at(rm.sample([0, 5], "all"), pool["step"][t],
+                                         PENDULUM_MOVING, 0.3))
+      for i in range(2):
+        a = fr.render(looks, pool["qpos"][t][i], index=i).astype(np.float32)
+        b = fr.render(rmod.Looks(**{**vars(looks), "skybox_tex": looks.skybox_tex2}),
+                      pool["qpos"][t][i], index=i).astype(np.float32)
+        w = looks.sky_mix[i]
+        want = np.rint((1 - w) * a + w * b) if w > 0 else a
+        np.testing.assert_array_equal(pool["obs"][t][i], want.astype(np.uint8))
+  assert all(not np.array_equal(p, s) for p, s in zip(pool["obs"][1:], static["obs"][1:]))
+
+
+@pytest.mark.slow
+def test_moving_jax_env_keeps_the_physics_and_draws_the_pools_looks(pool_runs):
+  """The ray caster's moving env: the same physics and rewards, and frames close to
+  the pool's frames of the same moving looks."""
+  static, pool = pool_runs
+  ray = _rollout(renderer="jax", moving="all", intensity=0.3, shadows=False, reflection=False)
+  np.testing.assert_allclose(ray["reward"], static["reward"], atol=1e-4)
+  np.testing.assert_allclose(ray["state"], static["state"], atol=1e-4)
+  mad = [np.abs(np.asarray(r, np.float32) - np.asarray(p, np.float32)).mean()
+         for r, p in zip(ray["obs"], pool["obs"])]
+  assert max(mad) < 8.0, mad
+  moved = [np.abs(np.asarray(r, np.float32) - np.asarray(s, np.float32)).mean()
+           for r, s in zip(ray["obs"][1:], static["obs"][1:])]
+  assert min(moved) > 0.5, moved

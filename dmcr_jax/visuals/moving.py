@@ -134,7 +134,7 @@ def _consts(domain: str) -> dict[str, np.ndarray]:
           "distance": np.float32(dist),
           "light_half": np.asarray(half, np.float32),
           "light_aim": np.asarray(r.light_aim, np.float32),
-          "light_moves": r.light_pos is not None}
+          "light_moves": np.asarray(r.light_pos is not None)}
 
 
 def _key(seed: jax.Array, factor: str) -> jax.Array:
@@ -212,10 +212,9 @@ def _one(p: dict, step, c: dict, moving: tuple[str, ...], intensity: float,
     x = wave(seed, "light", 6, step)
     for j, name in enumerate(("headlight_ambient", "headlight_diffuse", "headlight_specular")):
       out[name] = jnp.clip(p[name] + x[j] * I, 0.0, 1.0)
-    if c["light_moves"]:
-      pos = p["light_pos"] + x[3:6] * I * c["light_half"]
-      out["light_pos"] = pos
-      out["light_dir"] = c["light_aim"] - pos
+    pos = p["light_pos"] + x[3:6] * I * c["light_half"]   # half-width 0: no light moves
+    out["light_pos"] = jnp.where(c["light_moves"], pos, p["light_pos"])
+    out["light_dir"] = jnp.where(c["light_moves"], c["light_aim"] - pos, p["light_dir"])
     varied = varied.at[FACTOR_INDEX["light"]].set(True)
   if "body" in moving:
     x = wave(seed, "body", 6, step)
@@ -235,13 +234,12 @@ def _one(p: dict, step, c: dict, moving: tuple[str, ...], intensity: float,
   return out
 
 
-@functools.partial(jax.jit, static_argnames=("domain", "moving", "intensity",
-                                             "num_backgrounds"))
-def _look_at_jit(fields, step, *, domain, moving, intensity, num_backgrounds):
-  c = {k: v for k, v in _consts(domain).items()}
-  fn = functools.partial(_one, c=c, moving=moving, intensity=intensity,
+@functools.partial(jax.jit, static_argnames=("moving", "intensity", "num_backgrounds"))
+def _look_at_jit(fields, step, consts, *, moving, intensity, num_backgrounds):
+  """One compilation per (moving, intensity, bank size), for every domain."""
+  fn = functools.partial(_one, c=consts, moving=moving, intensity=intensity,
                          num_backgrounds=num_backgrounds)
-  return jax.vmap(fn)(fields, step)
+  return jax.vmap(fn, (0, 0))(fields, step)
 
 
 def look_at(params: VisualParams, step, moving: tuple[str, ...], intensity: float, *,
@@ -272,6 +270,6 @@ def look_at(params: VisualParams, step, moving: tuple[str, ...], intensity: floa
                                              "body_rgba", "effector_rgba")}
   n = params.seed.shape[0]
   step = jnp.broadcast_to(jnp.asarray(step, jnp.int32), (n,))
-  out = _look_at_jit(fields, step, domain=params.domain, moving=tuple(moving),
+  out = _look_at_jit(fields, step, _consts(check_domain(params.domain)), moving=tuple(moving),
                      intensity=float(intensity), num_backgrounds=int(num_backgrounds))
   return params.replace(**out)
