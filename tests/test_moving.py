@@ -265,3 +265,23 @@ def test_moving_jax_env_keeps_the_physics_and_draws_the_pools_looks(pool_runs):
   moved = [np.abs(np.asarray(r, np.float32) - np.asarray(s, np.float32)).mean()
            for r, s in zip(ray["obs"][1:], static["obs"][1:])]
   assert min(moved) > 0.5, moved
+
+
+def test_dmcr_train_moving_flags_are_checked_and_reach_the_env(monkeypatch, tmp_path, capsys):
+  import re
+  from dmcr_jax.train import loop
+  from dmcr_jax.train.__main__ import parse
+  base = ["--task", "pendulum-swingup", "--out", str(tmp_path / "run")]
+  cfg, _ = parse(base + ["--moving", "camera,background", "--intensity", "0.2"])
+  assert (cfg.moving, cfg.intensity) == ("camera,background", 0.2)
+  seen = {}
+  monkeypatch.setattr(dmcr_jax, "make", lambda *a, **k: seen.update(k))
+  loop.make_env(cfg)
+  assert (seen["moving"], seen["intensity"]) == ("camera,background", 0.2)
+  assert parse(base)[0].moving == "none"
+  for argv, message in ((["--moving", "sky", "--intensity", ".2"], "Valid moving factors"),
+                        (["--moving", "camera"], "needs an intensity in"),
+                        (["--moving", "camera", "--intensity", "2"], r"in \[0, 1\]")):
+    with pytest.raises(SystemExit):
+      parse(base + argv)
+    assert re.search(message, capsys.readouterr().err), argv
