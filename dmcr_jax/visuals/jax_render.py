@@ -76,7 +76,7 @@ from dmcr_jax.visuals.jax_render_scene import (BOX, CAPSULE, CYLINDER, ELLIPSOID
 
 __all__ = ["render", "render_batch", "render_with_ids", "build_scene", "device_looks",
            "poses", "intersect", "camera_frame", "running_minima", "Layout", "layout",
-           "pack_env", "trace_pixels", "image_from_planes", "use_kernel"]
+           "look_layout", "pack_env", "trace_pixels", "image_from_planes", "use_kernel"]
 
 INF = 1e10
 _EPS = 1e-6
