@@ -180,16 +180,17 @@ def test_ray_caster_blends_the_skies_and_tints_the_floor(pendulum):
   np.testing.assert_array_equal(rgba[scene.floor_obj], look.floor_rgba)
   assert not np.array_equal(look.floor_rgba, scene.rgba[scene.floor_obj])
 
-  def sky(lk):
+  @jax.jit
+  def sky(scene, lk):
     floats, ints = JR.pack_env(scene, bp, lk)
     reader = JR.ArrayReader(floats, ints, None, scene.skies.reshape(-1))
     L = JR.look_layout(scene, lk)
     d, _ = JR._camera_rays(L, reader, jnp.arange(64), 8, 8, 1)
-    return np.stack(JR._sky_color(L, reader, d), -1)
+    return jnp.stack(JR._sky_color(L, reader, d), -1)
 
-  a = sky(look.replace(sky2=None, sky_mix=None))
-  b = sky(look.replace(sky=look.sky2, sky2=None, sky_mix=None))
-  np.testing.assert_allclose(sky(look), (1 - w) * a + w * b, atol=1e-6)
+  a = sky(scene, look.replace(sky2=None, sky_mix=None))
+  b = sky(scene, look.replace(sky=look.sky2, sky2=None, sky_mix=None))
+  np.testing.assert_allclose(sky(scene, look), (1 - w) * a + w * b, atol=1e-6)
 
 
 def _data(rm):
