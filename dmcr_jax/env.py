@@ -73,6 +73,14 @@ Visual seeds (`visual_seeds=`):
   own range (e.g. agents with different few-shot ranges in one batch).
 A seed's look depends on the seed (and `vary`) alone, whatever range drew it.
 
+Moving looks (`moving=`, `intensity=`; `visuals.moving`): the named factors
+("camera", "light", "body", "floor", "background") drift within each episode,
+as a function of the env's visual seed and episode step alone
+(`visuals.moving.look_at`), inside a range `intensity` ∈ [0, 1] scales; the
+physics and rewards are those of static looks. The pool env computes each step's
+looks on the host and ships them with the render call; the JAX env makes them in
+its jitted step. `moving=None` (default) or intensity 0 gives the static looks.
+
 Observations are uint8 (N, H, W, 3·frame_stack), channels-last, oldest frame
 first. `info` holds, per env: "state" (dm_control's state features, flat),
 "visual_seed", "episode_index" (episodes begun − 1), "episode_step" (agent steps
@@ -102,6 +110,7 @@ from dmcr_jax.models.base import physics_jit
 from dmcr_jax.visuals import render_model as rmod
 from dmcr_jax.visuals.factors import check_vary
 from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, EnvRanges, SeedBounds, SeedRange
+from dmcr_jax.visuals.moving import check_moving, look_at
 from dmcr_jax.visuals.params import check_seeds
 from dmcr_jax.visuals.pool import check_timeout, default_timeout
 from dmcr_jax.visuals.render_pool import (RenderPool, check_egl_devices, check_gl, default_gl,
@@ -249,7 +258,7 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
                frame_stack: int, image_size, camera, seed: int,
                solver_iterations: int | None, ls_iterations: int | None,
                physics_device: str | None = None, physics_workers: int | None = None,
-               worker_timeout: float | None = None):
+               worker_timeout: float | None = None, moving=None, intensity: float = 0.0):
     self._physics_pool = None
     self.closed = False
     self.worker_timeout = (default_timeout() if worker_timeout is None
@@ -271,6 +280,7 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
       raise ValueError(f"seed must be an int, got {seed!r}")
     check_reset_seed(seed, num_envs)
     check_vary(domain, vary)  # validates `vary`, listing the factors
+    self.moving, self.intensity = check_moving(domain, moving, intensity)
     self.task_name, self.domain, self.vary, self.camera = task, domain, vary, camera
     self.seeds = _seed_source(visual_seeds, n)
     self.task = models.load(task, solver_iterations, ls_iterations)
@@ -489,7 +499,9 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
              else f"fixed {np.unique(self.seeds)[:4].tolist()}…")
     return (f"{type(self).__name__}({self.task_name!r}, num_envs={self.num_envs}, "
             f"visual_seeds={seeds}, vary={self.vary!r}, frame_skip={self.frame_skip}, "
-            f"frame_stack={self.frame_stack}, image={self.height}x{self.width})")
+            f"frame_stack={self.frame_stack}, image={self.height}x{self.width}"
+            + (f", moving={','.join(self.moving)!r}, intensity={self.intensity}"
+               if self.moving else "") + ")")
 
   # Internals ------------------------------------------------------------------
 
@@ -540,14 +552,14 @@ class PixelVectorEnv(_PixelEnvBase):
                egl_devices: Sequence[int] | None = None,
                solver_iterations: int | None = None, ls_iterations: int | None = None,
                physics_device: str | None = None, physics_workers: int | None = None,
-               worker_timeout: float | None = None):
+               worker_timeout: float | None = None, moving=None, intensity: float = 0.0):
     self._pool = None
     if workers is not None:
       positive_int("workers", workers)
     check_egl_devices(egl_devices, check_gl(default_gl() if gl is None else gl))
     super().__init__(task, num_envs, visual_seeds, vary, frame_skip, frame_stack,
                      image_size, camera, seed, solver_iterations, ls_iterations,
-                     physics_device, physics_workers, worker_timeout)
+                     physics_device, physics_workers, worker_timeout, moving, intensity)
     n = self.num_envs
     self.copy_obs = bool(copy_obs)
     self._pool = RenderPool(task, max_batch=n, height=self.height, width=self.width,
@@ -557,6 +569,7 @@ class PixelVectorEnv(_PixelEnvBase):
     self._use_seeds()
     self._looks = None
     self._look_seeds = None
+    self._static_params = None      # (seeds, vary, VisualParams) of moving looks
     self._needs_reset = np.zeros(n, bool)
 
   def _finish_step(self, t0, resetting, es, reward, truncated):
@@ -632,11 +645,28 @@ class PixelVectorEnv(_PixelEnvBase):
   def _output(self, stacked: np.ndarray) -> np.ndarray:
     return stacked.copy() if self.copy_obs else stacked
 
+  def step_params(self, seeds: np.ndarray, steps: np.ndarray):
+    """The `VisualParams` the envs draw with visual seeds `seeds` at episode steps
+    `steps` (int (N,) each): `moving.look_at` of their static looks (the static
+    looks themselves when nothing moves)."""
+    seeds = np.asarray(seeds, np.int32)
+    cached = self._static_params
+    if cached is None or cached[1] != self.vary or not np.array_equal(cached[0], seeds):
+      cached = self._static_params = (seeds.copy(), self.vary,
+                                      self._pool.rm.sample(seeds, vary=self.vary))
+    return look_at(cached[2], np.asarray(steps, np.int32), self.moving, self.intensity,
+                   num_backgrounds=self._pool.rm.bank.num_backgrounds)
+
   def _render(self, host: dict, restart) -> np.ndarray:
     if self._pool is None:
       raise RuntimeError("the env is closed")
-    self._update_looks(np.asarray(host["visual_seed"]))
-    return self._pool.render(host["qpos"], self._looks,
+    if self.moving and self.intensity > 0:   # this step's looks, shipped with the call
+      looks = rmod.prepare(self._pool.rm, self.step_params(host["visual_seed"],
+                                                           host["episode_step"]))
+    else:
+      self._update_looks(np.asarray(host["visual_seed"]))
+      looks = self._looks
+    return self._pool.render(host["qpos"], looks,
                              host["variables"], restart=restart, copy_out=False)
 
 
@@ -662,10 +692,10 @@ class JaxPixelVectorEnv(_PixelEnvBase):
                render_kernel: bool | None = False, obs_on_device: bool = False,
                solver_iterations: int | None = None, ls_iterations: int | None = None,
                physics_device: str | None = None, physics_workers: int | None = None,
-               worker_timeout: float | None = None):
+               worker_timeout: float | None = None, moving=None, intensity: float = 0.0):
     super().__init__(task, num_envs, visual_seeds, vary, frame_skip, frame_stack,
                      image_size, camera, seed, solver_iterations, ls_iterations,
-                     physics_device, physics_workers, worker_timeout)
+                     physics_device, physics_workers, worker_timeout, moving, intensity)
     self._render_on = jax.devices()[0]
     if render_chunk is not None:
       render_chunk = positive_int("render_chunk", render_chunk)
@@ -717,7 +747,8 @@ class JaxPixelVectorEnv(_PixelEnvBase):
     self._use_physics()
     self.functional = jax_env.make_env(
         self.task, self.num_envs, self.seeds, self.vary, self.frame_skip, self.frame_stack,
-        self.height, self.width, **self._options)
+        self.height, self.width, moving=self.moving, intensity=self.intensity,
+        **self._options)
     self._ps = None
     if self._physics_on == self._render_on and not self.physics_workers:
       # physics, frames and stacks in one call
@@ -761,7 +792,8 @@ def announce_compile(env: _PixelEnvBase) -> None:
   many envs, on which devices, and roughly how long it takes (JAX's persistent
   compilation cache, where enabled, makes later processes faster)."""
   jax_renderer = isinstance(env, JaxPixelVectorEnv)
-  options = tuple(sorted(env._options.items())) if jax_renderer else ()
+  options = tuple(sorted(env._options.items())) + (env.moving, env.intensity) \
+      if jax_renderer else ()
   shape = (type(env).__name__, env.task_name, env.num_envs, env.frame_skip, env.frame_stack,
            env.height, env.width, env.physics_device, env.physics_workers, options)
   if shape in _ANNOUNCED:
@@ -800,6 +832,7 @@ def make(task: str, num_envs: int = 1, visual_seeds: Any = 0,
          vary: str | Sequence[str] | None = "all", frame_skip: int | None = None,
          frame_stack: int = 3, image_size: int | tuple[int, int] = 84,
          camera: int | str = 0, seed: int = 0, renderer: str = "pool",
+         moving: str | Sequence[str] | None = None, intensity: float = 0.0,
          **kwargs) -> PixelVectorEnv | JaxPixelVectorEnv:
   """N DMCR envs with pixels, stepped as one batch (see the module docstring).
 
@@ -821,6 +854,12 @@ def make(task: str, num_envs: int = 1, visual_seeds: Any = 0,
     renderer: "pool" (default: MuJoCo's renderer in CPU worker processes,
       dm_control's pixels) or "jax" (the JAX ray caster on the device, physics,
       frames and stacks in one jitted call; close to MuJoCo's pixels, not equal).
+    moving: factors that move within each episode: None (default: static looks),
+      "all", or names from `visuals.moving.MOVING_FACTORS` ("camera", "light",
+      "body", "floor", "background"; comma-separated or a sequence), each
+      applicable to the task's domain (docs/moving.md).
+    intensity: how far they move, in [0, 1] (a fraction of each factor's range, as
+      the Distracting Control Suite's difficulty: .1, .2, .3); 0 is static.
     **kwargs: for "pool": `workers`, `quality` ("exact", "fast", "fastest"), `gl`
       ("egl", the default, or "osmesa", which needs the OSMesa library; no
       environment variable needed), `egl_devices` (EGL device indices the
@@ -857,7 +896,8 @@ def make(task: str, num_envs: int = 1, visual_seeds: Any = 0,
       [0, 2**32), a worker_timeout that is not a number > 0, a visual-seed
       count other than 1 or N, an option of the other
       renderer, a range straddling `TRAIN_SEEDS` and `TEST_SEEDS`, ranges mixed
-      with fixed seeds.
+      with fixed seeds, an unknown or inapplicable moving factor, an intensity
+      outside [0, 1].
   """
   check_renderer_name(renderer)
   other = _JAX_ONLY if renderer == "pool" else _POOL_ONLY
@@ -868,4 +908,4 @@ def make(task: str, num_envs: int = 1, visual_seeds: Any = 0,
                      f"renderer={renderer!r}")
   cls = PixelVectorEnv if renderer == "pool" else JaxPixelVectorEnv
   return cls(task, num_envs, visual_seeds, vary, frame_skip, frame_stack, image_size,
-             camera, seed, **kwargs)
+             camera, seed, moving=moving, intensity=intensity, **kwargs)

@@ -38,6 +38,12 @@ or an `EnvRanges` (a range per env), keeps no table: an env that resets draws
 its seed (`physics_env`) and its look is made then, so a range of any size
 costs neither host memory nor host time.
 
+Moving looks (`make_env(moving=..., intensity=...)`, `visuals.moving`): the look
+of every frame is made from the env's seed and its episode step
+(`LookMaker(seeds, step)`, i.e. `moving.look_at` inside the jitted step), so the
+table of fixed seeds is not read and no state beyond the physics' episode step is
+carried.
+
 The frames are the JAX ray caster's (`dmcr_jax.visuals.jax_render`), close to,
 not equal to, MuJoCo's (see that module's docstring for what differs).
 """
@@ -89,10 +95,12 @@ class RenderInputs:
     variables: the task's model variables the scene draws (e.g. a target's
       position), name → (N, …) array, or None when it draws none.
     visual_seed: int32 (N,), each env's visual seed (drawn seeds pick looks).
+    episode_step: int32 (N,), each env's agent step in its episode (moving looks).
   """
   poses: JS.BodyPoses
   variables: dict | None
   visual_seed: jax.Array
+  episode_step: jax.Array
 
 
 def physics_render_inputs(physics: physics_env.EnvState, variables: tuple[str, ...]
@@ -105,7 +113,7 @@ def physics_render_inputs(physics: physics_env.EnvState, variables: tuple[str, .
   info = physics.task.info
   return RenderInputs(poses=JS.poses(physics.task.data),
                       variables={k: info[k] for k in variables} or None,
-                      visual_seed=physics.visual_seed)
+                      visual_seed=physics.visual_seed, episode_step=physics.episode_step)
 
 
 @struct.dataclass
@@ -148,12 +156,16 @@ class PixelEnv:
   def _seeds(self) -> physics_env.SeedSource:
     return self.seed_bounds if self.seed_bounds is not None else self.fixed_seeds
 
-  def looks_of(self, visual_seed: jax.Array) -> JS.DeviceLook:
-    """The looks of envs showing `visual_seed` (int32 (N,), drawn by this env).
+  def looks_of(self, visual_seed: jax.Array, episode_step: jax.Array | None = None
+               ) -> JS.DeviceLook:
+    """The looks of envs showing `visual_seed` (int32 (N,), drawn by this env) at
+    their `episode_step` (int32 (N,); read when the looks move, None: step 0).
 
-    Fixed seeds: the table (row i is env i's seed). Drawn seeds: made from
-    `visual_seed` (`maker`).
+    Moving looks: made from the seed and step (`maker`). Else fixed seeds: the
+    table (row i is env i's seed); drawn seeds: made from `visual_seed` (`maker`).
     """
+    if self.maker.moves:
+      return self.maker(visual_seed, episode_step)
     if self.seed_bounds is None:
       return self.looks
     return self.maker(visual_seed)
@@ -184,11 +196,14 @@ class PixelEnv:
 
     Args:
       physics: an `EnvState` of N envs.
-      look: their `DeviceLook` (leading axis N).
+      look: their `DeviceLook` (leading axis N); with moving looks, ignored: the
+        look at each env's seed and episode step is made.
 
     Returns:
       The `PixelState`.
     """
+    if self.maker.moves:
+      look = self.looks_of(physics.visual_seed, physics.episode_step)
     frame = self.render(physics, look)
     # A copy, so the state never shares buffers with `self.looks` (a jitted
     # identity would forward them, and a donated state would delete the table).
@@ -253,7 +268,9 @@ class PixelEnv:
       The next `PixelState`, with `physics` None (the physics lives elsewhere).
     """
     look = state.look
-    if self.seed_bounds is not None:    # fixed seeds keep their look across resets
+    if self.maker.moves:                # every frame its own look
+      look = self.looks_of(inputs.visual_seed, inputs.episode_step)
+    elif self.seed_bounds is not None:  # fixed seeds keep their look across resets
       pick = lambda new, old: jnp.where(
           resetting.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)
       # New looks are made only in steps where some env resets (rare).
@@ -296,7 +313,8 @@ def make_env(task: Task, num_envs: int, seeds: SeedRange | EnvRanges | np.ndarra
              frame_skip: int, frame_stack: int, height: int, width: int, *,
              camera: int | str = 0, shadows: bool = True, reflection: bool = True,
              render_chunk: int | None = None,
-             render_kernel: bool | None = False) -> PixelEnv:
+             render_kernel: bool | None = False, moving: tuple[str, ...] = (),
+             intensity: float = 0.0) -> PixelEnv:
   """Builds a `PixelEnv` (host work: the scene once per domain, the looks per call).
 
   Args:
@@ -313,6 +331,8 @@ def make_env(task: Task, num_envs: int, seeds: SeedRange | EnvRanges | np.ndarra
     render_kernel: render in one fused GPU kernel (`jax_render_kernel`; same
       frames, faster, but minutes of compiling: benchmarks/results/jax_env_h100.md);
       None: on a GPU only (`jax_render.use_kernel`); False (default): through XLA.
+    moving, intensity: the factors that move within an episode and how far, as
+      `visuals.moving.check_moving` returns them (default: static looks).
 
   Returns:
     The `PixelEnv`.
@@ -323,7 +343,7 @@ def make_env(task: Task, num_envs: int, seeds: SeedRange | EnvRanges | np.ndarra
     NotImplementedError: a scene the ray caster cannot draw (`build_scene`).
   """
   rm, scene = scene_of(task.spec.domain, camera)
-  maker = JS.look_maker(scene, rm, vary)
+  maker = JS.look_maker(scene, rm, vary, moving, intensity)
   drawn = isinstance(seeds, (SeedRange, EnvRanges))
   if isinstance(seeds, EnvRanges) and len(seeds) != num_envs:
     raise ValueError(f"EnvRanges must hold one range per env ({num_envs}), got {len(seeds)}")
@@ -350,6 +370,8 @@ def make_env(task: Task, num_envs: int, seeds: SeedRange | EnvRanges | np.ndarra
 # Jitted entry points (the env is an argument: its arrays are not baked in as constants).
 make_looks = jax.jit(lambda maker, seeds: maker(seeds))
 """The `DeviceLook`s of int32 (N,) visual seeds on the device (`LookMaker`)."""
+make_looks_at = jax.jit(lambda maker, seeds, steps: maker(seeds, steps))
+"""The `DeviceLook`s of int32 (N,) visual seeds at int32 (N,) episode steps (moving looks)."""
 reset = jax.jit(lambda env, key: env.reset(key))
 start = jax.jit(lambda env, physics, look: env.start(physics, look))
 step = jax.jit(lambda env, state, actions: env.step(state, actions))

@@ -18,6 +18,7 @@ from dmcr_jax import visuals as V
 from dmcr_jax.visuals import render_model as RM
 from dmcr_jax.visuals import show
 from dmcr_jax.visuals import textures as T
+from dmcr_jax.visuals.moving import check_moving, look_at
 from dmcr_jax.models.names import suite_model
 
 TASKS = {"ball_in_cup": "catch", "cartpole": "swingup", "cheetah": "run",
@@ -73,7 +74,8 @@ def test_layout_and_additions_are_visual_only(domain, bank):
 
 @pytest.mark.parametrize("domain", V.DOMAINS)
 def test_mujoco_dynamics_unchanged_by_looks(domain, bank):
-  """Stepping the render model with any look gives dm_control's trajectory bit for bit."""
+  """Stepping the render model with any look, static or moving, gives dm_control's
+  trajectory bit for bit."""
   rm = copy.copy(V.build_render_model(domain, bank))
   base = suite_model(domain)
   looks = RM.prepare(rm, rm.sample([1, 2, 3], "all"))
@@ -88,6 +90,23 @@ def test_mujoco_dynamics_unchanged_by_looks(domain, bank):
     RM.apply(rm, RM.Looks(**{**looks.__dict__, "skybox_tex": np.full(3, rm.sky_tex)}), i)
     d = mujoco.MjData(rm.model)
     for t in range(25):
+      d.ctrl[:] = ctrl[t]
+      mujoco.mj_step(rm.model, d)
+    np.testing.assert_array_equal(d.qpos, d0.qpos)
+    np.testing.assert_array_equal(d.qvel, d0.qvel)
+    np.testing.assert_array_equal(d.act, d0.act)
+  # Looks that move (every factor the domain has, a new look before every step).
+  moving, _ = check_moving(domain, "all")
+  params = rm.sample([1, 2, 3], "all")
+  steps = np.tile(np.arange(25), 3)
+  moved = RM.prepare(rm, look_at(params.take(np.repeat(np.arange(3), 25)), steps, moving,
+                                 0.3, num_backgrounds=bank.num_backgrounds))
+  assert len(np.unique(moved.cam_pos, axis=0)) == 75
+  for i in range(3):
+    d = mujoco.MjData(rm.model)
+    for t in range(25):
+      RM.apply(rm, RM.Looks(**{**moved.__dict__, "skybox_tex": np.full(75, rm.sky_tex)}),
+               i * 25 + t)
       d.ctrl[:] = ctrl[t]
       mujoco.mj_step(rm.model, d)
     np.testing.assert_array_equal(d.qpos, d0.qpos)

@@ -97,6 +97,13 @@ def build_parser() -> argparse.ArgumentParser:
                  help="factors the visual seeds change: all, none or a comma-separated "
                       "subset of camera, light, body, target, floor, background, "
                       "reflectance")
+  p.add_argument("--moving", default=d.moving,
+                 help="factors that move within each episode: none, all or a "
+                      "comma-separated subset of camera, light, body, floor, background "
+                      "(docs/moving.md)")
+  p.add_argument("--intensity", type=float, default=d.intensity,
+                 help="how far --moving factors move, in [0, 1] (DCS's difficulty: .1, "
+                      ".2, .3)")
   p.add_argument("--action-repeat", type=int, default=None,
                  help="default: the paper's Table 4 value for the task")
   p.add_argument("--utd", type=float, default=d.utd, help="updates per training step")
@@ -184,7 +191,8 @@ FLAG_FIELDS = {
     "lr": lambda c: (c.sac.critic_lr, c.sac.actor_lr, c.sac.encoder_lr),
     "steps": lambda c: c.steps, "seeds": lambda c: tuple(c.seeds),
     "num_envs": lambda c: c.num_envs, "visual_seeds": lambda c: c.visual_seeds,
-    "vary": lambda c: c.vary, "action_repeat": lambda c: c.action_repeat,
+    "vary": lambda c: c.vary, "moving": lambda c: c.moving,
+    "intensity": lambda c: c.intensity, "action_repeat": lambda c: c.action_repeat,
     "utd": lambda c: c.utd, "warmup_steps": lambda c: c.warmup_steps,
     "buffer_capacity": lambda c: c.buffer_capacity, "batch_size": lambda c: c.sac.batch_size,
     "image_size": lambda c: c.image_size, "renderer": lambda c: c.renderer,
@@ -260,6 +268,7 @@ def parse(argv=None) -> tuple[TrainConfig, argparse.Namespace]:
       visual = int(visual)
     cfg = TrainConfig(task=a.task, steps=a.steps, seeds=seeds, num_envs=a.num_envs,
                       action_repeat=a.action_repeat, visual_seeds=visual, vary=a.vary,
+                      moving=a.moving, intensity=a.intensity,
                       warmup_steps=a.warmup_steps, utd=a.utd,
                       buffer_capacity=a.buffer_capacity, image_size=a.image_size,
                       quality=a.quality, workers=a.workers, egl_devices=a.egl_devices,

@@ -87,6 +87,9 @@ class TrainConfig:
       (few-shot: every episode draws a look from seeds [0, n); several counts
       train one agent per range, `parse_visual_seeds`).
     vary: factors the visual seeds change.
+    moving, intensity: factors that move within each episode ("none", "all" or
+      names of `dmcr_jax.visuals.moving.MOVING_FACTORS`, comma-separated) and how
+      far, in [0, 1] (`dmcr_jax.make`'s `moving`, `intensity`; docs/moving.md).
     warmup_steps: random-action training steps (transitions) per agent before
       learning (Table 6: 1,000).
     utd: gradient updates per training step (Table 6: 1).
@@ -134,6 +137,8 @@ class TrainConfig:
   action_repeat: int | None = None
   visual_seeds: int | str = 0
   vary: str = "all"
+  moving: str = "none"
+  intensity: float = 0.0
   warmup_steps: int = 1000
   utd: float = 1.0
   buffer_capacity: int = 100_000
@@ -311,9 +316,14 @@ def check_config(cfg: TrainConfig) -> None:
   """Raises ValueError naming the problem (before anything is compiled)."""
   from dmcr_jax import models
   from dmcr_jax.visuals.factors import check_vary
+  from dmcr_jax.visuals.moving import check_moving
   from dmcr_jax.visuals.tiled import check_quality
   domain, _ = models.split_name(cfg.task)
   check_vary(domain, cfg.vary)
+  moving, _ = check_moving(domain, cfg.moving, cfg.intensity)
+  if moving and cfg.intensity == 0:
+    raise ValueError(f"moving {cfg.moving!r} needs an intensity in (0, 1] (intensity 0 is "
+                     "static looks; pass moving 'none' for those)")
   check_quality(cfg.quality)
   cfg.looks  # noqa: B018 - parsed (and checked) once per config
   for name in ("steps", "num_envs", "buffer_capacity", "image_size", "frame_stack",

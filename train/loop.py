@@ -168,7 +168,7 @@ def make_env(cfg: TrainConfig, num_envs: int | None = None, **options):
   looks = (cfg.looks[0] if len(cfg.looks) == 1
            else [look for look in cfg.agent_looks() for _ in range(n)])
   return dmcr_jax.make(cfg.task, num_envs=k * n, visual_seeds=looks, vary=cfg.vary,
-                       frame_skip=cfg.action_repeat, frame_stack=cfg.frame_stack,
+                       moving=cfg.moving, intensity=cfg.intensity, frame_skip=cfg.action_repeat, frame_stack=cfg.frame_stack,
                        image_size=cfg.image_size, seed=int(cfg.seeds[0]),
                        renderer=cfg.renderer, **options)
 

@@ -7,11 +7,13 @@ A visual seed (an int in [0, 2**31)) fixes a look; seed 0 is dm_control's.
 (procedural, built once and cached on disk, or a user's image folders);
 `prepare`/`apply` write one env's look into that MuJoCo model cheaply, and
 `render_frame` / `FrameRenderer` draw one frame with `mujoco.Renderer` — the
-reference that batched render pools match. `dmcr-show` renders a grid of looks.
+reference that batched render pools match; `look_at` moves looks within an
+episode (a function of seed and step). `dmcr-show` renders a grid of looks.
 
 Modules: `factors` (names, Table 5), `ranges` (per-domain data), `params`
 (`VisualParams`, `sample`), `textures` (banks), `render_model` (render model,
-apply, reference renderer), `show` (the `dmcr-show` command).
+apply, reference renderer), `moving` (looks that move within an episode), `show`
+(the `dmcr-show` command).
 """
 
 from dmcr_jax._lazy import lazy_names as _lazy_names
@@ -24,6 +26,7 @@ _LAZY = {
     **dict.fromkeys(("FrameRenderer", "Looks", "RenderModel", "apply", "build_render_model",
                      "close_renderers", "prepare", "render_frame", "set_skybox"),
                     "dmcr_jax.visuals.render_model"),
+    **dict.fromkeys(("MOVING_FACTORS", "check_moving", "look_at"), "dmcr_jax.visuals.moving"),
     **dict.fromkeys(("NUM_BACKGROUNDS", "NUM_FLOORS", "TextureBank", "cache_dir",
                      "load_bank"), "dmcr_jax.visuals.textures"),
 }
@@ -35,8 +38,8 @@ __getattr__, __dir__ = _lazy_names(__name__, _LAZY, globals())
 
 __all__ = [
     "APPLICABLE", "DOMAINS", "FACTORS", "FACTOR_IDS", "FrameRenderer", "Looks",
-    "NUM_BACKGROUNDS", "NUM_FLOORS", "RenderModel", "TextureBank",
+    "MOVING_FACTORS", "NUM_BACKGROUNDS", "NUM_FLOORS", "RenderModel", "TextureBank",
     "VisualParams", "active_factors", "apply", "build_render_model",
-    "cache_dir", "check_seeds", "close_renderers", "defaults", "load_bank",
-    "parse_vary", "prepare", "render_frame", "sample", "set_skybox",
+    "cache_dir", "check_moving", "check_seeds", "close_renderers", "defaults", "load_bank",
+    "look_at", "parse_vary", "prepare", "render_frame", "sample", "set_skybox",
 ]

@@ -76,7 +76,7 @@ from dmcr_jax.visuals.jax_render_scene import (BOX, CAPSULE, CYLINDER, ELLIPSOID
 
 __all__ = ["render", "render_batch", "render_with_ids", "build_scene", "device_looks",
            "poses", "intersect", "camera_frame", "running_minima", "Layout", "layout",
-           "pack_env", "trace_pixels", "image_from_planes", "use_kernel"]
+           "look_layout", "pack_env", "trace_pixels", "image_from_planes", "use_kernel"]
 
 INF = 1e10
 _EPS = 1e-6
@@ -359,6 +359,8 @@ def _objects(scene: Scene, bp: BodyPoses, look: DeviceLook,
   local_pos, size = scene.local_pos, scene.size
   rgba = jnp.where(scene.mat_slot[:, None] >= 0,
                    look.mat_rgba[jnp.maximum(scene.mat_slot, 0)], scene.rgba)
+  if look.floor_rgba is not None and scene.floor_obj >= 0:
+    rgba = rgba.at[scene.floor_obj].set(look.floor_rgba)
   for key, field, k in scene.variables:
     if variables is None or key not in variables:
       continue
@@ -393,7 +395,9 @@ class Layout:
   unit direction 3, ambient 3, diffuse 3, specular 3, attenuation 3, cutoff,
   exponent); the headlight (ambient, diffuse, specular: 9); the floor's
   reflectance and texrepeat (2). Ints: the floor's mip level count, the sky, and
-  the floor texture's per-level texel offset, width and height.
+  the floor texture's per-level texel offset, width and height. With `sky_blend`
+  (a look whose background moves) one more float, the second sky's weight, and one
+  more int, the second sky.
   """
   types: tuple
   floor_obj: int
@@ -403,6 +407,7 @@ class Layout:
   znear: float
   levels: int
   sky_size: int
+  sky_blend: bool = False
 
   OBJ = 24
   # offsets of an object's numbers within its OBJ floats
@@ -435,7 +440,7 @@ class Layout:
 
   @property
   def num_floats(self) -> int:
-    return self.floor + 3
+    return self.floor + 3 + self.sky_blend
 
   # ints: 0 floor levels, 1 sky, then offsets, widths, heights per level
   def level_field(self, which: int) -> int:
@@ -443,15 +448,22 @@ class Layout:
 
   @property
   def num_ints(self) -> int:
-    return 2 + 3 * self.levels
+    return 2 + 3 * self.levels + self.sky_blend
 
 
-def layout(scene: Scene) -> Layout:
-  """The scene's `Layout` (static; hashable)."""
+def layout(scene: Scene, sky_blend: bool = False) -> Layout:
+  """The scene's `Layout` (static; hashable); `sky_blend`: for looks that blend a
+  second sky (`DeviceLook.sky2`)."""
   return Layout(types=tuple(scene.types), floor_obj=scene.floor_obj,
                 light_types=tuple(scene.light_types),
                 light_shadow=tuple(scene.light_shadow), fovy=scene.fovy, znear=scene.znear,
-                levels=int(scene.floor_offset.shape[1]), sky_size=int(scene.skies.shape[2]))
+                levels=int(scene.floor_offset.shape[1]), sky_size=int(scene.skies.shape[2]),
+                sky_blend=bool(sky_blend))
+
+
+def look_layout(scene: Scene, look: DeviceLook) -> Layout:
+  """The `Layout` of `scene` for looks shaped like `look` (static)."""
+  return layout(scene, look.sky2 is not None)
 
 
 def pack_env(scene: Scene, bp: BodyPoses, look: DeviceLook,
@@ -474,14 +486,19 @@ def pack_env(scene: Scene, bp: BodyPoses, look: DeviceLook,
                              scene.light_attenuation[l], scene.light_cutoff[l][None],
                              scene.light_exponent[l][None]]) for l in range(len(lpos))]
   f = look.floor
+  blend = look.sky2 is not None
   floats = jnp.concatenate([objs.reshape(-1), cam_pos, cam_mat.reshape(9), *lights,
                             look.headlight.reshape(9),
                             jnp.reshape(look.floor_reflectance, (1,)),
-                            scene.floor_repeat[f]]).astype(jnp.float32)
+                            scene.floor_repeat[f],
+                            *([jnp.reshape(look.sky_mix, (1,))] if blend else [])
+                            ]).astype(jnp.float32)
   ints = jnp.concatenate([scene.floor_levels[f][None], jnp.reshape(look.sky, (1,)),
                           scene.floor_offset[f], scene.floor_width[f],
-                          scene.floor_height[f]]).astype(jnp.int32)
-  L = layout(scene)
+                          scene.floor_height[f],
+                          *([jnp.reshape(look.sky2, (1,))] if blend else [])
+                          ]).astype(jnp.int32)
+  L = layout(scene, blend)
   assert floats.shape == (L.num_floats,) and ints.shape == (L.num_ints,), "Layout drift"
   return floats, ints
 
@@ -711,8 +728,19 @@ def _floor_color(L: Layout, R, p_local, footprint, half):
 
 
 def _sky_color(L: Layout, R, d):
-  """Skybox colour along world directions d (MuJoCo maps (x, y, z) to the cube
-  map's (x, z, −y); GL cube-face selection, bilinear, clamped to the face)."""
+  """Skybox colour along world directions d: the look's sky, or with
+  `L.sky_blend` its blend with the second sky (weight: the last float)."""
+  c = _one_sky_color(L, R, d, R.i(1))
+  if not L.sky_blend:
+    return c
+  w = R.f(L.num_floats - 1)
+  c2 = _one_sky_color(L, R, d, R.i(L.num_ints - 1))
+  return tuple((1 - w) * a + w * b for a, b in zip(c, c2))
+
+
+def _one_sky_color(L: Layout, R, d, sky):
+  """Skybox `sky`'s colour along world directions d (MuJoCo maps (x, y, z) to the
+  cube map's (x, z, −y); GL cube-face selection, bilinear, clamped to the face)."""
   rx, ry, rz = d[0], d[2], -d[1]
   ax, ay, az = jnp.abs(rx), jnp.abs(ry), jnp.abs(rz)
   xm = (ax >= ay) & (ax >= az)
@@ -724,7 +752,7 @@ def _sky_color(L: Layout, R, d):
                  jnp.where(ym, rx, jnp.where(rz > 0, rx, -rx)))
   tc = jnp.where(xm, -ry, jnp.where(ym, jnp.where(ry > 0, rz, -rz), -ry))
   size = L.sky_size
-  base = (R.i(1) * 6 + face) * size
+  base = (sky * 6 + face) * size
 
   def fetch(uu, vv):
     i = ((base + jnp.clip(vv, 0, size - 1)) * size + jnp.clip(uu, 0, size - 1)) * 3
@@ -928,7 +956,7 @@ def _render(scene: Scene, bp: BodyPoses, look: DeviceLook, variables, *, height,
   floats, ints = pack_env(scene, bp, look, variables)
   reader = ArrayReader(floats, ints, scene.floor_texels.reshape(-1), scene.skies.reshape(-1))
   pix = jnp.arange(height * supersample * width * supersample, dtype=jnp.int32)
-  color, seg = trace_pixels(layout(scene), reader, pix, height=height, width=width,
+  color, seg = trace_pixels(look_layout(scene, look), reader, pix, height=height, width=width,
                             shadows=shadows, reflection=reflection,
                             supersample=supersample, running=running)
   return jnp.stack(color), seg

@@ -142,7 +142,7 @@ def render_batch(scene: Scene, bp: BodyPoses, look: DeviceLook,
   """
   pack = jax.vmap(JR.pack_env, in_axes=(None, 0, 0, 0 if variables else None))
   floats, ints = pack(scene, bp, look, variables or None)
-  colour, _ = trace_batch(JR.layout(scene), floats, ints, scene.floor_texels.reshape(-1),
+  colour, _ = trace_batch(JR.look_layout(scene, look), floats, ints, scene.floor_texels.reshape(-1),
                           scene.skies.reshape(-1), height=height, width=width,
                           shadows=shadows, reflection=reflection, supersample=supersample,
                           block=block, num_warps=num_warps, skip_empty=skip_empty,

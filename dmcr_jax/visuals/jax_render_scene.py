@@ -167,6 +167,10 @@ class DeviceLook:
     light_pos, light_dir, light_pos0, light_poscom0, light_dir0: the moved light.
     light_diffuse, light_specular: (3,) its diffuse and specular RGB (used in
       place of the scene's `light_diffuse/specular` row of that light).
+    floor_rgba: (4,) the floor material's colour, or None: the scene's (a look
+      that moves the floor, `moving.look_at`).
+    sky2: int32 a second skybox (as `sky`) blended in with weight `sky_mix`
+      (float32), or both None: `sky` alone (a look that moves the background).
   """
   mat_rgba: jax.Array
   floor: jax.Array
@@ -185,6 +189,9 @@ class DeviceLook:
   light_dir0: jax.Array
   light_diffuse: jax.Array
   light_specular: jax.Array
+  floor_rgba: jax.Array | None = None
+  sky2: jax.Array | None = None
+  sky_mix: jax.Array | None = None
 
   def take(self, index) -> "DeviceLook":
     """The looks at `index` of a batched `DeviceLook`."""
@@ -443,13 +450,16 @@ def material_slots(scene: Scene, rm: rmod.RenderModel) -> np.ndarray:
   return np.asarray(mats, np.int64)
 
 
-def device_looks(scene: Scene, rm: rmod.RenderModel, looks: rmod.Looks) -> DeviceLook:
+def device_looks(scene: Scene, rm: rmod.RenderModel, looks: rmod.Looks,
+                 moving: tuple[str, ...] = ()) -> DeviceLook:
   """A batch of host `Looks` (from `render_model.prepare`) as a `DeviceLook`.
 
   Args:
     scene: the domain's scene.
     rm: its render model.
     looks: `Looks` with batch size N.
+    moving: the moving factors (`moving.check_moving`): "floor" fills
+      `floor_rgba`, "background" `sky2` and `sky_mix`.
 
   Returns:
     `DeviceLook` with leading axis N (float32 / int32 device arrays).
@@ -465,8 +475,14 @@ def device_looks(scene: Scene, rm: rmod.RenderModel, looks: rmod.Looks) -> Devic
         table[:, s] = rgba
   floor = np.where(looks.floor_matid == rm.dflt["floor_matid"], 0,
                    looks.floor_matid - rm.floor_mat0 + 1)
-  sky = np.where(looks.skybox_tex == rm.sky_tex, 0, looks.skybox_tex - rm.bg_tex0 + 1)
+  sky_id = lambda tex: np.where(tex == rm.sky_tex, 0, tex - rm.bg_tex0 + 1).astype(np.int32)
+  sky = sky_id(looks.skybox_tex)
   f32 = lambda x: jnp.asarray(np.asarray(x, np.float32))
+  extra = {}
+  if "floor" in moving:
+    extra["floor_rgba"] = f32(looks.floor_rgba)
+  if "background" in moving:
+    extra.update(sky2=jnp.asarray(sky_id(looks.skybox_tex2)), sky_mix=f32(looks.sky_mix))
   return DeviceLook(
       mat_rgba=f32(table), floor=jnp.asarray(floor.astype(np.int32)),
       floor_reflectance=f32(looks.floor_reflectance), sky=jnp.asarray(sky.astype(np.int32)),
@@ -476,7 +492,7 @@ def device_looks(scene: Scene, rm: rmod.RenderModel, looks: rmod.Looks) -> Devic
       light_pos=f32(looks.light_pos), light_dir=f32(looks.light_dir),
       light_pos0=f32(looks.light_pos0), light_poscom0=f32(looks.light_poscom0),
       light_dir0=f32(looks.light_dir0), light_diffuse=f32(looks.light_diffuse),
-      light_specular=f32(looks.light_specular))
+      light_specular=f32(looks.light_specular), **extra)
 
 
 @struct.dataclass
@@ -496,6 +512,8 @@ class LookMaker:
     domain, num_floors, num_backgrounds: static; the domain and its bank sizes.
     light_moves: static; whether the domain's look moves a light.
     light_coloured: static; whether it also changes that light's colour.
+    moving, intensity: static; the factors that move within an episode and how far
+      (`moving.look_at`; () = static looks).
   """
   mask: jax.Array
   consts: dict
@@ -504,12 +522,33 @@ class LookMaker:
   num_backgrounds: int = struct.field(pytree_node=False, default=1)
   light_moves: bool = struct.field(pytree_node=False, default=False)
   light_coloured: bool = struct.field(pytree_node=False, default=False)
+  moving: tuple = struct.field(pytree_node=False, default=())
+  intensity: float = struct.field(pytree_node=False, default=0.0)
 
-  def __call__(self, seeds: jax.Array) -> DeviceLook:
-    """The `DeviceLook`s of int32 (N,) visual seeds (jittable; leading axis N)."""
-    from dmcr_jax.visuals.params import FACTOR_INDEX, sample_masked
+  @property
+  def moves(self) -> bool:
+    """Whether looks change within an episode (static)."""
+    return bool(self.moving) and self.intensity > 0
+
+  def params(self, seeds: jax.Array, step: jax.Array | None = None):
+    """The `VisualParams` of int32 (N,) seeds at episode steps `step` (int (N,);
+    None or static looks: the static look), as the host's `look_at` gives them."""
+    from dmcr_jax.visuals.moving import look_at
+    from dmcr_jax.visuals.params import sample_masked
     p = sample_masked(self.domain, jnp.asarray(seeds, jnp.int32), self.mask,
                       self.num_floors, self.num_backgrounds)
+    if not self.moves or step is None:
+      return p
+    return look_at(p, step, self.moving, self.intensity,
+                   num_backgrounds=self.num_backgrounds)
+
+  def __call__(self, seeds: jax.Array, step: jax.Array | None = None) -> DeviceLook:
+    """The `DeviceLook`s of int32 (N,) visual seeds (jittable; leading axis N) at
+    episode steps `step` (int (N,); used when the looks move, None: step 0)."""
+    from dmcr_jax.visuals.params import FACTOR_INDEX
+    if self.moves and step is None:
+      step = jnp.zeros(jnp.shape(seeds), jnp.int32)
+    p = self.params(seeds, step)
     c, n = self.consts, p.seed.shape[0]
     on = lambda f: p.varied[:, FACTOR_INDEX[f]]
     sel = lambda f, x, d: jnp.where(on(f).reshape((n,) + (1,) * (x.ndim - 1)), x, d)
@@ -548,6 +587,13 @@ class LookMaker:
     lm = (on("light") & self.light_moves)[:, None]
     light = lambda x, d: jnp.where(lm, x, d)
     lc = (on("light") & self.light_coloured)[:, None]
+    extra = {}
+    if self.moves and "floor" in self.moving:
+      base = c["floor_rgba"][floor]
+      extra["floor_rgba"] = base.at[:, :3].set(
+          jnp.clip(base[:, :3] + p.floor_delta, 0.0, 1.0))
+    if self.moves and "background" in self.moving:
+      extra.update(sky2=(p.background2_id + 1).astype(jnp.int32), sky_mix=p.background_mix)
     return DeviceLook(
         mat_rgba=mat_rgba, floor=floor.astype(jnp.int32), floor_reflectance=refl,
         sky=sky.astype(jnp.int32), headlight=sel("light", head, c["headlight"]),
@@ -559,16 +605,19 @@ class LookMaker:
         light_poscom0=light(lxpos - lcom, c["light_poscom0"]),
         light_dir0=light(lxdir, c["light_dir0"]),
         light_diffuse=jnp.where(lc, p.light_diffuse, c["light_diffuse"]),
-        light_specular=jnp.where(lc, p.light_specular, c["light_specular"]))
+        light_specular=jnp.where(lc, p.light_specular, c["light_specular"]), **extra)
 
 
-def look_maker(scene: Scene, rm: rmod.RenderModel, vary) -> LookMaker:
+def look_maker(scene: Scene, rm: rmod.RenderModel, vary, moving: tuple[str, ...] = (),
+               intensity: float = 0.0) -> LookMaker:
   """The `LookMaker` of a domain's scene and render model for the factors `vary`.
 
   Args:
     scene: the domain's scene.
     rm: its render model.
     vary: the factors the visual seeds change (as for `params.sample`).
+    moving, intensity: the factors that move within an episode and how far
+      (checked, as `moving.check_moving` returns them).
   """
   from dmcr_jax.visuals import ranges as R
   from dmcr_jax.visuals.params import factor_mask
@@ -589,13 +638,15 @@ def look_maker(scene: Scene, rm: rmod.RenderModel, vary) -> LookMaker:
       effector_rgba=f32(d["mat_rgba"][rm.effector_mats[0]]),
       target_rgba=f32(d["mat_rgba"][rm.target_mats[0]]),
       floor_reflectance=f32(d["mat_reflectance"][floors]),
+      floor_rgba=f32(d["mat_rgba"][floors]),
       cam_frame=tuple(f32(x) for x in rm.cam_frame),
       light_frame=tuple(f32(x) for x in rm.light_frame))
   return LookMaker(mask=jnp.asarray(factor_mask(rm.domain, vary)), consts=consts,
                    domain=rm.domain, num_floors=int(rm.bank.num_floors),
                    num_backgrounds=int(rm.bank.num_backgrounds),
                    light_moves=R.DOMAIN_RANGES[rm.domain].light_pos is not None,
-                   light_coloured=R.DOMAIN_RANGES[rm.domain].light_diffuse is not None)
+                   light_coloured=R.DOMAIN_RANGES[rm.domain].light_diffuse is not None,
+                   moving=tuple(moving), intensity=float(intensity))
 
 
 @struct.dataclass

@@ -85,6 +85,10 @@ class VisualParams:
     floor_id: int32 (N,) floor texture in the bank, −1 = dm_control's grid.
     background_id: int32 (N,) skybox in the bank, −1 = dm_control's skybox.
     floor_reflectance: float32 (N,) reflectance of the floor material.
+    floor_delta: float32 (N, 3) RGB offset of the floor material's colour (clipped
+      to [0, 1] when applied), or None: a look that moves (`moving.look_at`).
+    background2_id: int32 (N,) the sky the picture cross-fades towards, or None.
+    background_mix: float32 (N,) that sky's weight in [0, 1], or None.
     domain: the domain these looks belong to (static).
   """
   seed: jax.Array
@@ -104,6 +108,9 @@ class VisualParams:
   floor_id: jax.Array
   background_id: jax.Array
   floor_reflectance: jax.Array
+  floor_delta: jax.Array | None = None
+  background2_id: jax.Array | None = None
+  background_mix: jax.Array | None = None
   domain: str = struct.field(pytree_node=False, default="")
 
   def __len__(self) -> int:

@@ -334,6 +334,9 @@ class Looks:
   light_diffuse: np.ndarray     # float32 (N, 3): the light's diffuse RGB
   light_specular: np.ndarray    # float32 (N, 3): the light's specular RGB
   skybox_tex: np.ndarray        # int (N,): texture id to draw as the skybox
+  floor_rgba: np.ndarray        # float32 (N, 4): colour of the floor's material
+  skybox_tex2: np.ndarray       # int (N,): the skybox blended in with weight sky_mix
+  sky_mix: np.ndarray           # float32 (N,): that weight (0: skybox_tex alone)
 
   def __len__(self) -> int:
     return int(self.floor_matid.shape[0])
@@ -359,8 +362,8 @@ def prepare(rm: RenderModel, params: VisualParams) -> Looks:
   if params.domain and params.domain != rm.domain:
     raise ValueError(f"VisualParams of domain {params.domain!r} cannot be applied "
                      f"to the {rm.domain!r} render model.")
-  P = {f.name: np.asarray(getattr(params, f.name))
-       for f in dataclasses.fields(params) if f.name != "domain"}
+  P = {f.name: np.asarray(getattr(params, f.name)) for f in dataclasses.fields(params)
+       if f.name != "domain" and getattr(params, f.name) is not None}
   n = P["seed"].shape[0]
   varied = P["varied"].astype(bool)
   on = lambda f: varied[:, FACTOR_INDEX[f]]
@@ -414,6 +417,14 @@ def prepare(rm: RenderModel, params: VisualParams) -> Looks:
   # Light colour (finger): the drawn values as they are (float32, as MuJoCo stores).
   lcol = (on("light") & (R.DOMAIN_RANGES[rm.domain].light_diffuse is not None))[:, None]
   sky = np.where(on("background") & (bid >= 0), rm.bg_tex0 + bid, rm.sky_tex)
+  # A moving look (`moving.look_at`): the floor material's colour and a second sky.
+  floor_rgba = d["mat_rgba"][floor_matid].astype(np.float32)
+  if "floor_delta" in P:
+    floor_rgba[:, :3] = np.clip(floor_rgba[:, :3] + P["floor_delta"], 0.0, 1.0)
+  sky2, mix = sky.copy(), np.zeros(n, np.float32)
+  if "background_mix" in P:
+    sky2 = rm.bg_tex0 + P["background2_id"].astype(np.int64)
+    mix = P["background_mix"].astype(np.float32)
   return Looks(
       body_rgba=body.astype(np.float32), effector_rgba=eff.astype(np.float32),
       target_rgba=tgt.astype(np.float32), floor_matid=floor_matid,
@@ -428,14 +439,14 @@ def prepare(rm: RenderModel, params: VisualParams) -> Looks:
       light_diffuse=np.where(lcol, P["light_diffuse"], d["light_diffuse"]).astype(np.float32),
       light_specular=np.where(lcol, P["light_specular"],
                               d["light_specular"]).astype(np.float32),
-      skybox_tex=sky)
+      skybox_tex=sky, floor_rgba=floor_rgba, skybox_tex2=sky2, sky_mix=mix)
 
 
-def look_textures(rm: RenderModel, looks: Looks, index: int) -> tuple[int, int]:
+def look_textures(rm: RenderModel, looks: Looks, index: int) -> tuple[int, ...]:
   """Texture ids env `index`'s look draws from the bank or dm_control: its floor
-  material's texture (-1 for none) and its skybox."""
+  material's texture (-1 for none), its skybox, and the skybox it blends in."""
   floor = int(rm.model.mat_texid[int(looks.floor_matid[index]), _ROLE_RGB])
-  return floor, int(looks.skybox_tex[index])
+  return floor, int(looks.skybox_tex[index]), int(looks.skybox_tex2[index])
 
 
 def set_skybox(rm: RenderModel, context: mujoco.MjrContext, tex: int) -> None:
@@ -485,6 +496,7 @@ def apply(rm: RenderModel, looks: Looks | VisualParams, index: int = 0,
   m.mat_rgba[rm.target_mats] = looks.target_rgba[i]
   mid = int(looks.floor_matid[i])
   m.geom_matid[rm.floor_geom] = mid
+  m.mat_rgba[mid] = looks.floor_rgba[i]
   m.mat_reflectance[mid] = looks.floor_reflectance[i]
   hl = m.vis.headlight
   hl.ambient[:], hl.diffuse[:], hl.specular[:] = looks.headlight[i]

@@ -164,19 +164,40 @@ class _WorkerRenderer:
       d.qpos[:] = qpos[i]
       prepare_kinematics(m, d)
 
-    if self.frame_stack == 1:
-      self.renderer.render(d, len(out), prepare, out)
-      return
     n = len(out)
+    if self.frame_stack == 1:
+      self.renderer.render(d, n, prepare, out)
+      self._blend_skies(looks, prepare, out)
+      return
     if self.frames is None or len(self.frames) < n:
       self.frames = np.empty((n,) + out.shape[1:3] + (3,), np.uint8)
     frames = self.frames[:n]
     self.renderer.render(d, n, prepare, frames)
+    self._blend_skies(looks, prepare, frames)
     shift_stacks(out, prev)
     out[..., -3:] = frames
     restart = np.flatnonzero(inputs["restart"])
     if len(restart):
       out[restart] = np.concatenate([frames[restart]] * self.frame_stack, axis=-1)
+
+
+  def _blend_skies(self, looks: rmod.Looks, prepare, frames: np.ndarray) -> None:
+    """Cross-fades the skies of the frames whose look blends in a second skybox
+    (`Looks.sky_mix` > 0): those rows are drawn again under `skybox_tex2` and the
+    two frames mixed, which blends only the sky (all else is the same in both)."""
+    rows = np.flatnonzero(looks.sky_mix[:len(frames)] > 0)
+    if not len(rows):
+      return
+
+    def prepare2(j: int) -> None:
+      i = int(rows[j])
+      prepare(i)
+      rmod.set_skybox(self.rm, self.renderer.context, int(looks.skybox_tex2[i]))
+
+    second = np.empty((len(rows),) + frames.shape[1:], np.uint8)
+    self.renderer.render(self.data, len(rows), prepare2, second)
+    w = looks.sky_mix[rows].astype(np.float32)[:, None, None, None]
+    frames[rows] = np.rint((1 - w) * frames[rows] + w * second).astype(np.uint8)
 
 
 class RenderPool(OwnsWorkerPool):
