@@ -23,9 +23,21 @@ its implementation's layout, and elementwise functions apply to either with
 `jax.tree.map` (`Blocks.data` is its only array). `StrideTwoConvTranspose` is
 ``nn.ConvTranspose(features, (3, 3), strides=(2, 2), padding=((2, a), (2, a)))``
 computed in phases, without the zero-dilated input XLA would build.
+
+Every `Conv` convolution (either layout) is `conv_valid`. Inside
+`gemm_under_vmap()` (a trace-time setting: the agent loop "vmap_gemm" traces the
+vmapped update inside it) a convolution traced under `jax.vmap` runs as one
+batched matrix product over the vmapped axis (`patches_gemm`: the K inputs'
+patches (K, N·H'·W', kh·kw·C_in) times the K kernels (K, kh·kw·C_in, C_out)), and
+so do its input and kernel gradients, where plain `jax.vmap` would give a grouped
+convolution (``feature_group_count`` K); unvmapped it is the plain convolution.
 """
 
 from __future__ import annotations
+
+import contextlib
+import contextvars
+import functools
 
 import flax.linen as nn
 import flax.struct
@@ -59,6 +71,115 @@ def resolve_impl(impl: str | None) -> str:
   if impl not in IMPLS:
     raise ValueError(f"impl must be one of {', '.join(IMPLS)} (or None), got {impl!r}")
   return impl
+
+
+# --------------------------------------------------------------------------- #
+# The convolution, and K vmapped convolutions as one batched GEMM.
+# --------------------------------------------------------------------------- #
+
+_GEMM_UNDER_VMAP = contextvars.ContextVar("gemm_under_vmap", default=False)
+
+
+@contextlib.contextmanager
+def gemm_under_vmap():
+  """While tracing inside it, `conv_valid` under `jax.vmap` is `patches_gemm`.
+
+  A trace-time setting (as `jax.default_matmul_precision`): it decides what a
+  function traced inside it computes, not when it runs; the agent loop
+  "vmap_gemm" (`dmcr_jax.train.step.over_agents`) traces its vmapped update in it.
+  It is per thread (a `contextvars` variable) and not part of any jit cache key:
+  jit a function traced in it under a static argument that says so.
+  """
+  token = _GEMM_UNDER_VMAP.set(True)
+  try:
+    yield
+  finally:
+    _GEMM_UNDER_VMAP.reset(token)
+
+
+def conv_valid(x: jax.Array, kernel: jax.Array, strides: tuple[int, int] = (1, 1),
+               precision: jax.lax.PrecisionLike = None) -> jax.Array:
+  """The VALID convolution (no bias) of (B, H, W, C_in) images with a HWIO kernel.
+
+  ``lax.conv_general_dilated(x, kernel, strides, "VALID")`` in NHWC / HWIO / NHWC;
+  inside `gemm_under_vmap` the same function with a custom batching rule
+  (`_agent_conv`), so that vmapped over K it is `patches_gemm`, gradients included.
+
+  Returns:
+    (B, (H − kh)//s_h + 1, (W − kw)//s_w + 1, C_out).
+  """
+  strides = tuple(int(s) for s in strides)
+  if _GEMM_UNDER_VMAP.get():
+    return _agent_conv(strides, precision)(x, kernel)
+  return jax.lax.conv_general_dilated(x, kernel, strides, "VALID", dimension_numbers=_DIMS,
+                                      precision=precision)
+
+
+def patches_gemm(x: jax.Array, kernel: jax.Array, strides: tuple[int, int] = (1, 1),
+                 precision: jax.lax.PrecisionLike = None) -> jax.Array:
+  """K VALID convolutions, each of its own images and kernel, as one batched GEMM.
+
+  Output pixel (i, j) of image n of agent a is Σ_{u, v, c} x[a, n, s_h·i + u,
+  s_w·j + v, c]·kernel[a, u, v, c, o]: the kh·kw strided slices of x side by side
+  in (u, v, c) order are the patches (K, N·H'·W', kh·kw·C_in), the kernel in HWIO
+  order flattened is (K, kh·kw·C_in, C_out), and one `jnp.matmul` with the agent
+  as its batch dimension multiplies them. Its gradients are dot products and the
+  slices' transposes (pads); no convolution.
+
+  Args:
+    x: (K, N, H, W, C_in).
+    kernel: (K, kh, kw, C_in, C_out).
+    strides: (s_h, s_w).
+    precision: as `jnp.matmul`'s.
+
+  Returns:
+    (K, N, (H − kh)//s_h + 1, (W − kw)//s_w + 1, C_out), x's and the kernel's
+    promoted dtype.
+  """
+  k, n, h, w, c = x.shape
+  kh, kw, _, c_out = kernel.shape[1:]
+  (sh, sw), oh, ow = strides, (h - kh) // strides[0] + 1, (w - kw) // strides[1] + 1
+  taps = [x[:, :, u:u + sh * (oh - 1) + 1:sh, v:v + sw * (ow - 1) + 1:sw]
+          for u in range(kh) for v in range(kw)]
+  patches = jnp.concatenate(taps, axis=-1).reshape(k, n * oh * ow, kh * kw * c)
+  y = jnp.matmul(patches, kernel.reshape(k, kh * kw * c, c_out), precision=precision)
+  return y.reshape(k, n, oh, ow, c_out)
+
+
+def _batched_rule(fn):
+  """A `custom_vmap` rule running ``fn`` on arguments with the vmapped axis first
+  (unbatched ones broadcast to it); every output batched."""
+  def rule(axis_size, in_batched, *args):
+    args = [a if b else jnp.broadcast_to(a, (axis_size,) + a.shape)
+            for a, b in zip(args, in_batched)]
+    out = fn(*args)
+    return out, jax.tree.map(lambda _: True, out)
+  return rule
+
+
+@functools.lru_cache(maxsize=None)
+def _agent_conv(strides: tuple[int, int], precision):
+  """``conv(x, kernel)``: `conv_valid`'s plain convolution, batched as `patches_gemm`.
+
+  A `jax.custom_vjp` over a `custom_vmap` (JAX's pattern: `custom_vmap` has no
+  reverse-mode rule of its own), whose backward pass is a second `custom_vmap`:
+  unbatched it is the plain convolution's VJP (the convolutions autodiff
+  gives), batched the VJP of `patches_gemm`. One function per (strides, precision).
+  """
+  plain = lambda x, k: jax.lax.conv_general_dilated(
+      x, k, strides, "VALID", dimension_numbers=_DIMS, precision=precision)
+  gemm = lambda xs, ks: patches_gemm(xs, ks, strides, precision)
+
+  forward = jax.custom_batching.custom_vmap(plain)
+  forward.def_vmap(_batched_rule(gemm))
+  backward = jax.custom_batching.custom_vmap(lambda x, k, g: jax.vjp(plain, x, k)[1](g))
+  backward.def_vmap(_batched_rule(lambda xs, ks, gs: jax.vjp(gemm, xs, ks)[1](gs)))
+
+  @jax.custom_vjp
+  def conv(x, k):
+    return forward(x, k)
+  conv.defvjp(lambda x, k: (forward(x, k), (x, k)), lambda res, g: backward(*res, g))
+  return conv
 
 
 # --------------------------------------------------------------------------- #
@@ -265,8 +386,7 @@ def stride_two_conv(x: jax.Array, kernel: jax.Array, channel_multiple: int | Non
   extra = data.shape[-1] - block_kernel.shape[2]  # the blocks' zero channels
   if extra:
     block_kernel = jnp.pad(block_kernel, ((0, 0), (0, 0), (0, extra), (0, 0)))
-  return jax.lax.conv_general_dilated(data, block_kernel, (1, 1), "VALID",
-                                      dimension_numbers=_DIMS, precision=precision)
+  return conv_valid(data, block_kernel, (1, 1), precision)
 
 
 # --------------------------------------------------------------------------- #
@@ -320,8 +440,7 @@ def block_conv(x: Blocks, kernel: jax.Array,
   """
   if min(x.height, x.width) < 3:
     raise ValueError(f"expected images with H, W ≥ 3, got shape {x.shape}")
-  y = jax.lax.conv_general_dilated(x.data, stride_one_block_kernel(kernel), (1, 1), "VALID",
-                                   dimension_numbers=_DIMS, precision=precision)
+  y = conv_valid(x.data, stride_one_block_kernel(kernel), (1, 1), precision)
   return Blocks(y, x.height - 2, x.width - 2)
 
 
@@ -402,9 +521,7 @@ class Conv(nn.Module):
     x, kernel, bias = nn.dtypes.promote_dtype(to_pixels(x), kernel, bias, dtype=self.dtype)
     if impl == "blocks":  # stride 2
       return to_blocks(stride_two_conv(x, kernel, precision=self.precision) + bias)
-    y = jax.lax.conv_general_dilated(x, kernel, (self.strides,) * 2, "VALID",
-                                     dimension_numbers=_DIMS, precision=self.precision)
-    return y + bias
+    return conv_valid(x, kernel, (self.strides,) * 2, self.precision) + bias
 
 
 class Dense(nn.Module):
