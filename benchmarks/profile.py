@@ -231,7 +231,8 @@ def main(argv=None) -> None:
   p.add_argument("--pairs", type=int, default=5, help="learner: update pairs per call")
   p.add_argument("--agents", type=int, default=1, help="learner: agents K")
   p.add_argument("--agent-loop", default="vmap",
-                 help="learner: how the K agents are batched (vmap, map, vmap_gemm)")
+                 help="learner: how the K agents are batched (vmap, map, vmap_gemm, "
+                      "vmap_split)")
   p.add_argument("--calls", type=int, default=3, help="profiled calls")
   p.add_argument("--by", default="op", choices=GROUPINGS)
   p.add_argument("--top", type=int, default=30)

@@ -1,11 +1,12 @@
-"""K agents' convolutions as one batched GEMM (`layouts.gemm_under_vmap`, the agent
-loop "vmap_gemm").
+"""K agents' vmapped convolutions without grouping (`layouts.vmapped_convs`: one
+batched GEMM, "gemm", or K plain convolutions, "split"; the agent loops
+"vmap_gemm" and "vmap_split").
 
 References: each agent's plain `nn.Conv` (the layer) and each agent's update run
-alone (`step.update_pair`, the plain convolutions); K of them vmapped with the
-GEMM path must equal them within float32 rounding, outputs and gradients, and
-the vmapped program must hold no grouped convolution (plain `vmap` does: the
-control that shows the count can fail).
+alone (`step.update_pair`, the plain convolutions); K of them vmapped on either
+path must equal them within float32 rounding, outputs and gradients, and the
+vmapped program must hold no grouped convolution (plain `vmap` does: the control
+that shows the count can fail) and, for "gemm", no convolution at all.
 """
 
 import dataclasses
@@ -33,10 +34,11 @@ def convolutions(hlo: str) -> tuple[int, int]:
   return len(convs), len(grouped)
 
 
-def test_vmapped_conv_is_one_gemm_and_each_agents_nn_conv():
+@pytest.mark.parametrize("form", layouts.VMAPPED_CONVS)
+def test_vmapped_conv_is_each_agents_nn_conv_without_grouping(form):
   # Both layouts, both strides, odd non-square sides: K agents' Conv vmapped
-  # inside gemm_under_vmap gives each agent's nn.Conv output and the gradients
-  # (kernel, bias, input) of a random functional, with no convolution left.
+  # inside vmapped_convs(form) gives each agent's nn.Conv output and the gradients
+  # (kernel, bias, input) of a random functional, with no grouped convolution.
   rng = np.random.default_rng(0)
   normal = lambda *shape: jnp.asarray(rng.normal(size=shape), jnp.float32)
   cases = [(impl, s) for impl in layouts.IMPLS for s in (1, 2)]
@@ -48,14 +50,14 @@ def test_vmapped_conv_is_one_gemm_and_each_agents_nn_conv():
     y, vjp = jax.vjp(lambda p, x: layouts.to_pixels(layer.apply(p, x)), p, x)
     return y, *vjp(w)
 
-  def batched(params, x):
-    with layouts.gemm_under_vmap():
-      return [jax.vmap(lambda p, x, w, i=i, s=s: grads(layouts.Conv(4, s, impl=i), p, x, w))(
-          params, x, weights[s]) for i, s in cases]
+  def vmapped(params, x):
+    return [jax.vmap(lambda p, x, w, i=i, s=s: grads(layouts.Conv(4, s, impl=i), p, x, w))(
+        params, x, weights[s]) for i, s in cases]
 
-  plain = jax.jit(lambda params, x: [jax.vmap(
-      lambda p, x, w, i=i, s=s: grads(layouts.Conv(4, s, impl=i), p, x, w))(params, x, weights[s])
-      for i, s in cases])
+  def batched(params, x):
+    with layouts.vmapped_convs(form):
+      return vmapped(params, x)
+
   got = jax.jit(batched)(params, x)
   for case, out in zip(cases, got):
     for k in range(K):
@@ -65,14 +67,19 @@ def test_vmapped_conv_is_one_gemm_and_each_agents_nn_conv():
       for g, e in zip(jax.tree.leaves(pick(out)), jax.tree.leaves(expect), strict=True):
         np.testing.assert_allclose(g, e, rtol=1e-5, atol=1e-5 * np.abs(e).max(),
                                    err_msg=str(case))
-  assert convolutions(jax.jit(batched).lower(params, x).as_text(dialect="hlo")) == (0, 0)
-  # Plain vmap: forward, input and kernel gradients grouped, per case.
-  assert convolutions(plain.lower(params, x).as_text(dialect="hlo")) == (3 * 4, 3 * 4)
+  # Per case a forward, an input- and a kernel-gradient convolution: none left
+  # (gemm) or K plain ones each (split); plain vmap groups all of them.
+  hlo = lambda fn: jax.jit(fn).lower(params, x).as_text(dialect="hlo")
+  assert convolutions(hlo(batched)) == ((0, 0) if form == "gemm" else (3 * 4 * K, 0))
+  assert convolutions(hlo(vmapped)) == (3 * 4, 3 * 4)
   # Unvmapped inside it, the convolution is the plain one.
-  with layouts.gemm_under_vmap():
+  with layouts.vmapped_convs(form):
     one = jax.jit(lambda p, x: layouts.Conv(4, 2, impl="pixels").apply(p, x))
-    hlo = one.lower(jax.tree.map(lambda a: a[0], params), x[0]).as_text(dialect="hlo")
-  assert convolutions(hlo) == (1, 0)
+    text = one.lower(jax.tree.map(lambda a: a[0], params), x[0]).as_text(dialect="hlo")
+  assert convolutions(text) == (1, 0)
+  with pytest.raises(ValueError, match="gemm, split"):
+    with layouts.vmapped_convs("grouped"):
+      pass
 
 
 @pytest.mark.slow

@@ -25,11 +25,12 @@ its implementation's layout, and elementwise functions apply to either with
 computed in phases, without the zero-dilated input XLA would build.
 
 Every `Conv` convolution (either layout) is `conv_valid`. Inside
-`gemm_under_vmap()` (a trace-time setting: the agent loop "vmap_gemm" traces the
-vmapped update inside it) a convolution traced under `jax.vmap` runs as one
-batched matrix product over the vmapped axis (`patches_gemm`: the K inputs'
-patches (K, N·H'·W', kh·kw·C_in) times the K kernels (K, kh·kw·C_in, C_out)), and
-so do its input and kernel gradients, where plain `jax.vmap` would give a grouped
+`vmapped_convs(form)` (a trace-time setting: the agent loops "vmap_gemm" and
+"vmap_split" trace the vmapped update inside it) a convolution traced under
+`jax.vmap` over K, and its input and kernel gradients, run as one batched matrix
+product over the vmapped axis ("gemm", `patches_gemm`: the K inputs' patches
+(K, N·H'·W', kh·kw·C_in) times the K kernels (K, kh·kw·C_in, C_out)) or as K
+plain convolutions ("split"), where plain `jax.vmap` gives one grouped
 convolution (``feature_group_count`` K); unvmapped it is the plain convolution.
 """
 
@@ -74,27 +75,41 @@ def resolve_impl(impl: str | None) -> str:
 
 
 # --------------------------------------------------------------------------- #
-# The convolution, and K vmapped convolutions as one batched GEMM.
+# The convolution, and K vmapped convolutions without grouping.
 # --------------------------------------------------------------------------- #
 
-_GEMM_UNDER_VMAP = contextvars.ContextVar("gemm_under_vmap", default=False)
+VMAPPED_CONVS = ("gemm", "split")
+"""What `vmapped_convs` accepts: how K vmapped convolutions are computed."""
+
+_VMAPPED_CONVS = contextvars.ContextVar("vmapped_convs", default=None)
 
 
 @contextlib.contextmanager
-def gemm_under_vmap():
-  """While tracing inside it, `conv_valid` under `jax.vmap` is `patches_gemm`.
+def vmapped_convs(form: str):
+  """While tracing inside it, `conv_valid` under `jax.vmap` over K is computed as `form`.
+
+  "gemm": one batched matrix product over the vmapped axis (`patches_gemm`);
+  "split": K plain convolutions, one per slice of the vmapped axis. Their input
+  and kernel gradients are computed the same way (`_vmapped_conv`). Outside it,
+  a vmapped convolution is JAX's: one grouped convolution.
 
   A trace-time setting (as `jax.default_matmul_precision`): it decides what a
-  function traced inside it computes, not when it runs; the agent loop
-  "vmap_gemm" (`dmcr_jax.train.step.over_agents`) traces its vmapped update in it.
-  It is per thread (a `contextvars` variable) and not part of any jit cache key:
-  jit a function traced in it under a static argument that says so.
+  function traced inside it computes, not when it runs; the agent loops
+  "vmap_gemm" and "vmap_split" (`dmcr_jax.train.step.over_agents`) trace their
+  vmapped update in it. It is per thread (a `contextvars` variable) and not part
+  of any jit cache key: jit a function traced in it under a static argument that
+  says so.
+
+  Raises:
+    ValueError: for a form not in `VMAPPED_CONVS`.
   """
-  token = _GEMM_UNDER_VMAP.set(True)
+  if form not in VMAPPED_CONVS:
+    raise ValueError(f"form must be one of {', '.join(VMAPPED_CONVS)}, got {form!r}")
+  token = _VMAPPED_CONVS.set(form)
   try:
     yield
   finally:
-    _GEMM_UNDER_VMAP.reset(token)
+    _VMAPPED_CONVS.reset(token)
 
 
 def conv_valid(x: jax.Array, kernel: jax.Array, strides: tuple[int, int] = (1, 1),
@@ -102,15 +117,20 @@ def conv_valid(x: jax.Array, kernel: jax.Array, strides: tuple[int, int] = (1, 1
   """The VALID convolution (no bias) of (B, H, W, C_in) images with a HWIO kernel.
 
   ``lax.conv_general_dilated(x, kernel, strides, "VALID")`` in NHWC / HWIO / NHWC;
-  inside `gemm_under_vmap` the same function with a custom batching rule
-  (`_agent_conv`), so that vmapped over K it is `patches_gemm`, gradients included.
+  inside `vmapped_convs` the same function with a custom batching rule
+  (`_vmapped_conv`), gradients included.
 
   Returns:
     (B, (H − kh)//s_h + 1, (W − kw)//s_w + 1, C_out).
   """
   strides = tuple(int(s) for s in strides)
-  if _GEMM_UNDER_VMAP.get():
-    return _agent_conv(strides, precision)(x, kernel)
+  form = _VMAPPED_CONVS.get()
+  if form is not None:
+    return _vmapped_conv(strides, precision, form)(x, kernel)
+  return _plain_conv(x, kernel, strides, precision)
+
+
+def _plain_conv(x, kernel, strides, precision):
   return jax.lax.conv_general_dilated(x, kernel, strides, "VALID", dimension_numbers=_DIMS,
                                       precision=precision)
 
@@ -157,23 +177,37 @@ def _batched_rule(fn):
   return rule
 
 
+def _split(fn):
+  """``fn`` of unbatched arguments, run once per index of their leading axis
+  (K calls, outputs stacked)."""
+  def split(*args):
+    outs = [fn(*(a[i] for a in args)) for i in range(args[0].shape[0])]
+    return jax.tree.map(lambda *x: jnp.stack(x), *outs)
+  return split
+
+
 @functools.lru_cache(maxsize=None)
-def _agent_conv(strides: tuple[int, int], precision):
-  """``conv(x, kernel)``: `conv_valid`'s plain convolution, batched as `patches_gemm`.
+def _vmapped_conv(strides: tuple[int, int], precision, form: str):
+  """``conv(x, kernel)``: the plain convolution, batched over K as `form` says.
 
   A `jax.custom_vjp` over a `custom_vmap` (JAX's pattern: `custom_vmap` has no
   reverse-mode rule of its own), whose backward pass is a second `custom_vmap`:
-  unbatched it is the plain convolution's VJP (the convolutions autodiff
-  gives), batched the VJP of `patches_gemm`. One function per (strides, precision).
+  unbatched, the plain convolution and its VJP (the convolutions autodiff
+  gives); batched, "gemm" runs `patches_gemm` and its VJP, "split" the plain
+  ones per slice of the vmapped axis. One function per (strides, precision, form).
   """
-  plain = lambda x, k: jax.lax.conv_general_dilated(
-      x, k, strides, "VALID", dimension_numbers=_DIMS, precision=precision)
-  gemm = lambda xs, ks: patches_gemm(xs, ks, strides, precision)
+  plain = lambda x, k: _plain_conv(x, k, strides, precision)
+  plain_vjp = lambda x, k, g: jax.vjp(plain, x, k)[1](g)
+  if form == "gemm":
+    gemm = lambda xs, ks: patches_gemm(xs, ks, strides, precision)
+    batched, batched_vjp = gemm, lambda xs, ks, gs: jax.vjp(gemm, xs, ks)[1](gs)
+  else:
+    batched, batched_vjp = _split(plain), _split(plain_vjp)
 
   forward = jax.custom_batching.custom_vmap(plain)
-  forward.def_vmap(_batched_rule(gemm))
-  backward = jax.custom_batching.custom_vmap(lambda x, k, g: jax.vjp(plain, x, k)[1](g))
-  backward.def_vmap(_batched_rule(lambda xs, ks, gs: jax.vjp(gemm, xs, ks)[1](gs)))
+  forward.def_vmap(_batched_rule(batched))
+  backward = jax.custom_batching.custom_vmap(plain_vjp)
+  backward.def_vmap(_batched_rule(batched_vjp))
 
   @jax.custom_vjp
   def conv(x, k):

@@ -32,8 +32,9 @@ Agent batching (`StepSpec.agent_loop`): "vmap" runs the K agents' updates as one
 batched computation (their convolutions become grouped convolutions); "map" runs
 them one after the other in the same call (`jax.lax.map`); "vmap_gemm" is "vmap"
 with each convolution of the K agents (forward and gradients) one batched matrix
-product over the agent axis (`dmcr_jax.train.layouts.gemm_under_vmap`), for the
-updates and for acting (`benchmarks/learner.py` compares the three). With a `mesh`, the agent axis is split
+product over the agent axis, and "vmap_split" is "vmap" with K plain convolutions
+instead (`dmcr_jax.train.layouts.vmapped_convs`), for the updates and for acting
+(`benchmarks/learner.py` compares them). With a `mesh`, the agent axis is split
 over its devices with `shard_map` (each device runs the vmapped function on its
 own agents).
 """
@@ -80,7 +81,7 @@ class StepSpec:
     warmup_steps: random-action transitions per agent before learning.
     utd: gradient updates per transition.
     sac: the learner's hyperparameters.
-    agent_loop: "vmap", "map" or "vmap_gemm" (module doc).
+    agent_loop: "vmap", "map", "vmap_gemm" or "vmap_split" (module doc).
     low, high: the env's action bounds (policy actions in [−1, 1] map onto them).
   """
   agents: int
@@ -222,16 +223,21 @@ def update_pair(agent: sac.AgentState, buffer: replay.ReplayBuffer, key: jax.Arr
   return sac.update_pair(agent, batches, k_update, config)
 
 
+_VMAPPED_CONVS = {"vmap_gemm": "gemm", "vmap_split": "split"}
+"""The agent loops that vmap the agents with `layouts.vmapped_convs`, and its form."""
+
+
 def agent_batching(agent_loop: str):
-  """The context the agents' vmapped networks are traced in: `layouts.gemm_under_vmap`
-  for "vmap_gemm", else none."""
-  return layouts.gemm_under_vmap() if agent_loop == "vmap_gemm" else contextlib.nullcontext()
+  """The context the agents' vmapped networks are traced in: `layouts.vmapped_convs`
+  for "vmap_gemm" and "vmap_split", else none."""
+  form = _VMAPPED_CONVS.get(agent_loop)
+  return contextlib.nullcontext() if form is None else layouts.vmapped_convs(form)
 
 
 def over_agents(one_agent, agent_loop: str, num_agents: int):
   """`one_agent(agent, buffer, key)` batched over the agent axis: "vmap" batches
-  the agents, "map" runs them one after the other, "vmap_gemm" batches them with
-  their convolutions as batched GEMMs (module doc)."""
+  the agents, "map" runs them one after the other, "vmap_gemm" and "vmap_split"
+  batch them with their convolutions as batched GEMMs or apart (module doc)."""
   if agent_loop == "map" and num_agents > 1:
     return lambda *args: jax.lax.map(lambda a: one_agent(*a), args)
 
