@@ -117,3 +117,39 @@ def test_vmap_gemm_agents_update_as_each_agent_alone():
   # The control: plain vmap gives grouped convolutions.
   plain = update.lower(agents, dataclasses.replace(spec, agent_loop="vmap"))
   assert convolutions(plain.as_text(dialect="hlo"))[1] > 0
+
+
+def test_learner_benchmark_measures_each_new_loop_at_one_agent_too():
+  from dmcr_jax.benchmarks import learner
+  loops = ["map", "vmap", "vmap_gemm", "vmap_split"]
+  assert learner.loops_for(8, loops) == loops
+  assert learner.loops_for(1, loops) == ["vmap", "vmap_gemm", "vmap_split"]
+  assert learner.loops_for(1, ["map"]) == ["vmap"]
+  row = dict(kind="scanned", agents=1, dtype="bfloat16", agent_loop="vmap_gemm")
+  assert learner.variant(row) == "K=1 bfloat16 vmap_gemm"
+  assert learner.variant(dict(row, agent_loop="vmap")) == "K=1 bfloat16"
+
+
+def test_roofline_counts_flops_and_bytes_of_convolutions_and_dots():
+  # A 3×3 VALID convolution (4 images 10×10×3 → 8×8×5), tanh, a dot with a 5×7
+  # matrix: FLOPs and bytes against the hand count, plain, vmapped over K = 3
+  # (grouped) and on the GEMM path (dots).
+  from dmcr_jax.benchmarks import learner_roofline as L
+  f = lambda x, k, w: jnp.sum(jnp.tanh(layouts.conv_valid(x, k)) @ w)
+  args = (jnp.zeros((4, 10, 10, 3)), jnp.zeros((3, 3, 3, 5)), jnp.zeros((5, 7)))
+  conv_flops, dot_flops = 2 * 4 * 8 * 8 * 5 * 27, 2 * 4 * 8 * 8 * 7 * 5
+  costs = L.hlo_costs(jax.jit(f).lower(*args).as_text(dialect="hlo"))
+  assert costs["convolution"] == dict(flops=conv_flops, ops=1,
+                                      bytes=4 * (4 * 10 * 10 * 3 + 3 * 3 * 3 * 5 + 4 * 8 * 8 * 5))
+  assert costs["dot"]["flops"] == dot_flops
+  assert costs["elementwise"]["flops"] == 4 * 8 * 8 * 5  # the tanh
+  batched = tuple(jnp.zeros((K,) + a.shape) for a in args)
+  grouped = L.hlo_costs(jax.jit(jax.vmap(f)).lower(*batched).as_text(dialect="hlo"))
+  assert grouped["convolution"]["flops"] == K * conv_flops
+
+  def gemm(*a):
+    with layouts.vmapped_convs("gemm"):
+      return jax.vmap(f)(*a)
+  dots = L.hlo_costs(jax.jit(gemm).lower(*batched).as_text(dialect="hlo"))
+  assert dots["convolution"]["ops"] == 0
+  assert dots["dot"]["flops"] == K * (conv_flops + dot_flops)
