@@ -46,7 +46,7 @@ _FREE = {"reshape", "bitcast", "broadcast", "constant", "parameter", "tuple",
          "while", "call", "conditional", "custom-call", "opt-barrier"}
 _MOVES = {"transpose", "concatenate", "pad", "slice", "copy", "reverse", "convert",
           "bitcast-convert", "select", "clamp"}
-CATEGORIES = ("convolution", "dot", "replay rows (gather, dynamic slices)", "reduce",
+CATEGORIES = ("convolution", "grouped convolution", "dot", "replay rows (gather, dynamic slices)", "reduce",
               "elementwise", "data movement (transpose, concat, pad, slice, convert)",
               "random bits and other")
 
@@ -60,21 +60,23 @@ def _shapes(text: str) -> list[tuple[int, int]]:
   return out
 
 
-def category(opcode: str) -> str:
-  """The `CATEGORIES` entry of an HLO opcode."""
+def category(opcode: str, attrs: str = "") -> str:
+  """The `CATEGORIES` entry of an HLO instruction (its opcode; a convolution's
+  attributes tell a grouped one: feature or batch group count > 1)."""
   if opcode == "convolution":
-    return CATEGORIES[0]
+    grouped = re.search(r"(feature|batch)_group_count=(?!1\b)\d+", attrs)
+    return CATEGORIES[1] if grouped else CATEGORIES[0]
   if opcode == "dot":
-    return CATEGORIES[1]
-  if opcode in ("gather", "dynamic-slice", "dynamic-update-slice", "scatter"):
     return CATEGORIES[2]
-  if opcode in ("reduce", "reduce-window"):
+  if opcode in ("gather", "dynamic-slice", "dynamic-update-slice", "scatter"):
     return CATEGORIES[3]
+  if opcode in ("reduce", "reduce-window"):
+    return CATEGORIES[4]
   if opcode in _MOVES:
-    return CATEGORIES[5]
-  if opcode in ("rng-bit-generator", "rng", "sort"):
     return CATEGORIES[6]
-  return CATEGORIES[4]
+  if opcode in ("rng-bit-generator", "rng", "sort"):
+    return CATEGORIES[7]
+  return CATEGORIES[5]
 
 
 def op_cost(opcode: str, out_type: str, operand_types: list[str], attrs: str
@@ -156,7 +158,7 @@ def hlo_costs(text: str) -> dict[str, dict[str, float]]:
       operand_types = [types.get(o.strip().lstrip("%"), o) for o in operand_text.split(",")
                        if o.strip()]
       flops, nbytes = op_cost(opcode, out_type, operand_types, attrs)
-      t = totals[category(opcode)]
+      t = totals[category(opcode, attrs)]
       t["flops"] += count * flops
       t["bytes"] += count * nbytes
       t["ops"] += count

@@ -145,7 +145,8 @@ def test_roofline_counts_flops_and_bytes_of_convolutions_and_dots():
   assert costs["elementwise"]["flops"] == 4 * 8 * 8 * 5  # the tanh
   batched = tuple(jnp.zeros((K,) + a.shape) for a in args)
   grouped = L.hlo_costs(jax.jit(jax.vmap(f)).lower(*batched).as_text(dialect="hlo"))
-  assert grouped["convolution"]["flops"] == K * conv_flops
+  assert grouped["convolution"]["ops"] == 0
+  assert grouped["grouped convolution"]["flops"] == K * conv_flops
 
   def gemm(*a):
     with layouts.vmapped_convs("gemm"):
