@@ -114,9 +114,13 @@ def test_vmap_gemm_agents_update_as_each_agent_alone():
     for name in ("critic_loss", "lam_loss", "actor_loss", "alpha_loss"):
       np.testing.assert_allclose(agent_metrics[name], ref_metrics[name], rtol=1e-4,
                                  err_msg=name)
-  # The control: plain vmap gives grouped convolutions.
-  plain = update.lower(agents, dataclasses.replace(spec, agent_loop="vmap"))
-  assert convolutions(plain.as_text(dialect="hlo"))[1] > 0
+  # The control: plain vmap gives grouped convolutions. Acting takes the same path.
+  vmap = dataclasses.replace(spec, agent_loop="vmap")
+  assert convolutions(update.lower(agents, vmap).as_text(dialect="hlo"))[1] > 0
+  learner = train_step.init_learner(agents, buffers, key, 0, spec)
+  obs = jnp.zeros((K, 16, 16, 9), jnp.uint8)
+  acting = lambda s: train_step.act_jit.lower(learner, obs, spec=s).as_text(dialect="hlo")
+  assert convolutions(acting(spec)) == (0, 0) and convolutions(acting(vmap))[1] > 0
 
 
 def test_learner_benchmark_measures_each_new_loop_at_one_agent_too():
