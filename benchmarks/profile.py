@@ -15,6 +15,7 @@ The command profiles the two workloads the open speed targets are about:
 
     python -m dmcr_jax.benchmarks.profile render --batch 1024 --chunk 1024 --out $OUT/prof
     python -m dmcr_jax.benchmarks.profile learner --dtype bfloat16 --out $OUT/prof
+    python -m dmcr_jax.benchmarks.profile learner --agents 8 --agent-loop vmap_gemm --out $OUT/prof8
 
 Each writes ``summary.md`` (the top `--top` rows) and ``summary.json`` into --out
 beside the raw trace, and prints the table. ``--trace-dir`` puts the trace
@@ -228,6 +229,10 @@ def main(argv=None) -> None:
   p.add_argument("--size", type=int, default=84, help="image side")
   p.add_argument("--dtype", default="bfloat16", help="learner: compute dtype")
   p.add_argument("--pairs", type=int, default=5, help="learner: update pairs per call")
+  p.add_argument("--agents", type=int, default=1, help="learner: agents K")
+  p.add_argument("--agent-loop", default="vmap",
+                 help="learner: how the K agents are batched (vmap, map, vmap_gemm, "
+                      "vmap_split)")
   p.add_argument("--calls", type=int, default=3, help="profiled calls")
   p.add_argument("--by", default="op", choices=GROUPINGS)
   p.add_argument("--top", type=int, default=30)
@@ -242,7 +247,7 @@ def main(argv=None) -> None:
                       "and deletes it after summarising")
   argv = sys.argv[1:] if argv is None else list(argv)
   args = p.parse_args(argv)
-  for name in ("batch", "chunk", "size", "pairs", "calls", "top"):
+  for name in ("batch", "chunk", "size", "pairs", "agents", "calls", "top"):
     value = getattr(args, name)
     if value is not None and (value < 0 if name == "chunk" else value < 1):
       p.error(f"--{name} must be {'≥ 0' if name == 'chunk' else 'positive'}, got {value}")
@@ -259,10 +264,13 @@ def main(argv=None) -> None:
     what = f"render_batch, {args.task}, N = {args.batch or 1024}, {args.size}×{args.size}"
   else:
     from dmcr_jax.benchmarks.learner import scanned_workload
-    call, _, _ = scanned_workload(dtype=args.dtype, batch=args.batch or 256,
-                                  pairs=args.pairs, size=args.size)
-    what = (f"SAC+AUG, {args.pairs} update pairs per call, batch {args.batch or 256}, "
-            f"{args.size}×{args.size}×9, {args.dtype}")
+    from dmcr_jax.train.config import AGENT_LOOPS
+    if args.agent_loop not in AGENT_LOOPS:
+      p.error(f"--agent-loop must be one of {', '.join(AGENT_LOOPS)}, got {args.agent_loop!r}")
+    call, _, _ = scanned_workload(args.agents, args.dtype, args.agent_loop,
+                                  batch=args.batch or 256, pairs=args.pairs, size=args.size)
+    what = (f"SAC+AUG, K = {args.agents} ({args.agent_loop}), {args.pairs} update pairs per "
+            f"call, batch {args.batch or 256}, {args.size}×{args.size}×9, {args.dtype}")
   t0 = time.perf_counter()
   jax.block_until_ready(call())  # compiles
   compile_s = time.perf_counter() - t0
