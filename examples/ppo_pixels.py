@@ -97,8 +97,10 @@ class Config:
     gamma, gae_lambda: discount and GAE λ per agent step.
     clip_eps: PPO's ratio clip ε.
     entropy_coef, value_coef: weights of the entropy bonus and the value loss.
-    reward_scale: rewards are multiplied by this in the losses (returns are
-      reported unscaled).
+    reward_scale: the losses see each agent step's reward divided by the frame
+      skip and multiplied by this (a DMC control step pays at most 1, so at most
+      0.1 per step by default and values at most 10 at γ 0.99, the scale of
+      Playground's vision reward); returns are reported unscaled.
     channels, kernels: the encoder's conv layers (stride 2, ELU, 2×2 max pool each).
     hidden: the policy and value MLPs' widths (on one shared encoder).
     init_log_std: the Gaussian policy's initial log standard deviation.
@@ -426,8 +428,8 @@ def iteration(env: jax_env.PixelEnv, carry: Carry, cfg: Config):
     nxt, reward, done = env.step(state, protocol.env_actions(jnp.clip(action, -1, 1), low, high))
     ended = jnp.where(done, nxt.physics.episode_return, 0.0)
     out = dict(obs=state.obs, action=action, log_prob=log_prob(action, mean, log_std),
-               value=value, reward=reward * cfg.reward_scale, done=done, valid=valid,
-               ended=ended)
+               value=value, reward=reward * (cfg.reward_scale / cfg.skip), done=done,
+               valid=valid, ended=ended)
     return (nxt, key), out
 
   key, k_roll, k_upd = jax.random.split(carry.key, 3)
@@ -479,12 +481,15 @@ def chunk_row(m: dict, chunk: int, cfg: Config, wall_s: float, chunk_s: float) -
   return row
 
 
-def train(cfg: Config, *, time_limit: float | None = None,
+def train(cfg: Config, *, env: jax_env.PixelEnv | None = None,
+          time_limit: float | None = None,
           on_chunk: Callable[[dict, dict], None] | None = None) -> tuple[dict, dict]:
   """Trains a PPO agent: one compiled `run_chunk` called `cfg.num_chunks` times.
 
   Args:
     cfg: the `Config` (checked first).
+    env: the envs to train on (default `make_env(cfg)`); any `PixelEnv` of
+      `cfg.num_envs` envs, e.g. one with a range of looks per env (`EnvRanges`).
     time_limit: stop after the chunk past which the next one would end beyond
       this many seconds since the call (env building and compiling included);
       None: run every chunk.
@@ -497,7 +502,9 @@ def train(cfg: Config, *, time_limit: float | None = None,
   """
   check(cfg)
   t0 = time.perf_counter()
-  env = make_env(cfg)
+  env = make_env(cfg) if env is None else env
+  if env.num_envs != cfg.num_envs:
+    raise ValueError(f"env has {env.num_envs} envs, cfg.num_envs is {cfg.num_envs}")
   carry = jax.jit(init, static_argnames="cfg")(env, jax.random.key(cfg.seed), cfg=cfg)
   jax.block_until_ready(carry)
   build_s = time.perf_counter() - t0
@@ -536,6 +543,16 @@ def greedy_policy(action_size: int, channels: tuple, kernels: tuple, hidden: tup
     del key
     return jnp.clip(net.apply(params, obs)[0], -1.0, 1.0)
   return policy
+
+
+def load_params(cfg: Config, path: str) -> dict:
+  """The params of `cfg`'s network saved at `path` (`flax.serialization.to_bytes`)."""
+  net = network(cfg, dmcr_jax.load(cfg.task).action_size)
+  obs = jnp.zeros((1, cfg.image_size, cfg.image_size, 3 * cfg.frame_stack), jnp.uint8)
+  template = jax.eval_shape(net.init, jax.random.key(0), obs)
+  with open(path, "rb") as f:
+    return serialization.from_bytes(jax.tree.map(lambda x: np.zeros(x.shape, x.dtype),
+                                                 template), f.read())
 
 
 def protocol_plan(cfg: Config, **options) -> protocol.Protocol:
@@ -600,7 +617,8 @@ def parse(argv=None) -> tuple[Config, argparse.Namespace]:
   p.add_argument("--entropy-coef", type=float, default=d.entropy_coef)
   p.add_argument("--clip-eps", type=float, default=d.clip_eps)
   p.add_argument("--gamma", type=float, default=d.gamma)
-  p.add_argument("--reward-scale", type=float, default=d.reward_scale)
+  p.add_argument("--reward-scale", type=float, default=d.reward_scale,
+                 help="the losses' reward per agent step: reward / frame skip × this")
   p.add_argument("--chunk-iterations", type=int, default=None,
                  help="iterations per jitted call (default: one episode's worth)")
   p.add_argument("--no-shadows", action="store_true")
@@ -616,6 +634,8 @@ def parse(argv=None) -> tuple[Config, argparse.Namespace]:
                  help="comma list, or 'every' (all that apply to the task)")
   p.add_argument("--eval-max-envs", type=int, default=None)
   p.add_argument("--no-eval", action="store_true")
+  p.add_argument("--eval-only", action="store_true",
+                 help="evaluate --out's params.msgpack (same network and observation flags)")
   a = p.parse_args(argv)
   cfg = Config(task=a.task, num_envs=a.num_envs, levels=a.levels, vary=a.vary,
                image_size=a.image_size, frame_stack=a.frame_stack, frame_skip=a.frame_skip,
@@ -627,10 +647,17 @@ def parse(argv=None) -> tuple[Config, argparse.Namespace]:
   return check(cfg), a
 
 
+EVAL_KEYS = ("task", "levels", "vary", "image_size", "frame_stack", "frame_skip", "channels",
+             "kernels", "hidden", "shadows", "reflection")
+"""The config fields an `--eval-only` run must share with the run it evaluates."""
+
+
 def main(argv=None) -> dict:
   """Trains, writes the curve and checkpoint after every chunk, then runs the protocol."""
   cfg, a = parse(argv)
   conditions = None if a.eval_conditions == "every" else tuple(a.eval_conditions.split(","))
+  if a.eval_only and a.no_eval:
+    raise SystemExit("--eval-only and --no-eval exclude each other")
   # Planned (and its options checked) before training; compiled after it.
   proto = None if a.no_eval else protocol_plan(
       cfg, visual_seeds=a.eval_visual_seeds, dynamics_seeds=a.eval_dynamics_seeds,
@@ -660,13 +687,24 @@ def main(argv=None) -> dict:
           f"return {row['return_mean']:.1f}  ({row['episodes']} episodes)  "
           f"{row['steps_per_s']:,.0f} steps/s  wall {row['wall_s']:.1f} s", flush=True)
 
-  print(f"{title}: {cfg.num_chunks} chunks of {cfg.chunk} iterations × "
-        f"{cfg.iteration_steps:,} agent steps", flush=True)
-  params, metrics = train(cfg, time_limit=a.time_limit, on_chunk=on_chunk)
-  print(f"trained {metrics['agent_steps']:,} agent steps in {metrics['wall_s']:.1f} s "
-        f"(build {metrics['build_s']:.1f} s, compile {metrics['compile_s']:.1f} s, "
-        f"chunks {metrics['train_s']:.1f} s) on {metrics['device']}", flush=True)
-  write_summary(**metrics)
+  if a.eval_only:
+    with open(os.path.join(a.out, "metrics.json")) as f:
+      saved = json.load(f)
+    mine = json.loads(json.dumps(summary["config"]))
+    differ = [k for k in EVAL_KEYS if saved["config"][k] != mine[k]]
+    if differ:
+      raise SystemExit(f"--eval-only: {', '.join(differ)} differ from the run in {a.out}; "
+                       "pass the run's flags")
+    summary.update(saved)
+    params = load_params(cfg, os.path.join(a.out, "params.msgpack"))
+  else:
+    print(f"{title}: {cfg.num_chunks} chunks of {cfg.chunk} iterations × "
+          f"{cfg.iteration_steps:,} agent steps", flush=True)
+    params, metrics = train(cfg, time_limit=a.time_limit, on_chunk=on_chunk)
+    print(f"trained {metrics['agent_steps']:,} agent steps in {metrics['wall_s']:.1f} s "
+          f"(build {metrics['build_s']:.1f} s, compile {metrics['compile_s']:.1f} s, "
+          f"chunks {metrics['train_s']:.1f} s) on {metrics['device']}", flush=True)
+    write_summary(**metrics)
   if proto is not None:
     t0 = time.perf_counter()
     result = proto(params, progress=True,

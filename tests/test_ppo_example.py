@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from flax import serialization, struct
+from flax import struct
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -147,7 +147,8 @@ class ToyEnv:
 
 def test_rollout_bookkeeping_and_learning_on_a_toy_env():
   cfg = ppo.Config(num_envs=4, unroll=8, epochs=4, minibatches=2, learning_rate=1e-2,
-                   anneal_lr=False, entropy_coef=0.0, reward_scale=1.0, **TINY)
+                   anneal_lr=False, entropy_coef=0.0, reward_scale=1.0, frame_skip=1,
+                   **TINY)
   env = ToyEnv()
   carry = ppo.init(env, jax.random.key(0), cfg)
   carry, m = ppo.run_chunk(env, carry, cfg=cfg, iterations=12)
@@ -161,6 +162,19 @@ def test_rollout_bookkeeping_and_learning_on_a_toy_env():
   # The policy learns to push (every positive action pays): from about half the
   # steps paying to nearly all.
   assert returns[:2].mean() < 0.75 * LENGTH < returns[-2:].mean()
+
+
+def test_train_stops_at_the_time_limit_after_a_whole_chunk():
+  cfg = ppo.Config(num_envs=4, unroll=8, epochs=1, minibatches=2, chunk_iterations=2,
+                   total_steps=4 * 8 * 2 * 3, frame_skip=1, **TINY)
+  seen = []
+  params, metrics = ppo.train(cfg, env=ToyEnv(), on_chunk=lambda row, p: seen.append(row))
+  assert [r["agent_steps"] for r in seen] == [64, 128, 192] == [
+      r["agent_steps"] for r in metrics["rows"]]
+  assert not metrics["stopped_at_time_limit"] and metrics["agent_steps"] == 192
+  _, metrics = ppo.train(cfg, env=ToyEnv(), time_limit=0.0)
+  assert metrics["stopped_at_time_limit"] and len(metrics["rows"]) == 1
+  assert metrics["agent_steps"] == 64 and metrics["compile_s"] > 0
 
 
 def test_the_protocol_plan_uses_the_training_observations():
@@ -190,27 +204,28 @@ def test_bad_configs_are_refused(change, match):
 
 @pytest.mark.slow
 def test_cli_trains_on_the_pixel_env_and_writes_after_every_chunk(tmp_path):
-  # cartpole-balance at 16 px and frame skip 100: 10 agent steps per episode.
+  # cartpole-balance at 16 px and frame skip 100: episodes of 10 agent steps, each
+  # env's ending at vector steps 10 and 21, one in each chunk of 2 × 6 steps.
   out = str(tmp_path / "run")
   summary = ppo.main(["--task", "cartpole-balance", "--num-envs", "4", "--image-size", "16",
                       "--frame-skip", "100", "--levels", "3", "--unroll", "6",
-                      "--minibatches", "2", "--epochs", "2", "--total-steps", "48",
-                      "--chunk-iterations", "1",
-                      "--no-eval", "--out", out])
+                      "--minibatches", "2", "--epochs", "2", "--total-steps", "96",
+                      "--no-shadows", "--no-reflection", "--no-eval", "--out", out])
   with open(os.path.join(out, "returns.csv")) as f:
     rows = list(csv.DictReader(f))
-  assert len(rows) == 2 and [int(r["agent_steps"]) for r in rows] == [24, 48]
+  assert [int(r["agent_steps"]) for r in rows] == [48, 96]
   for r in rows:
-    assert int(r["episodes"]) >= 4                      # every env ended an episode
+    assert int(r["episodes"]) == 4
     assert 0 <= float(r["return_mean"]) <= 1000
     assert all(np.isfinite(float(r[k])) for k in ("loss", "value_loss", "entropy"))
   with open(os.path.join(out, "metrics.json")) as f:
     saved = json.load(f)
-  assert saved["agent_steps"] == 48 and saved["compile_s"] > 0
-  assert summary["rows"][-1]["agent_steps"] == 48
+  assert saved["agent_steps"] == 96 and saved["compile_s"] > 0
+  assert summary["rows"] == saved["rows"]
   assert os.path.getsize(os.path.join(out, "returns.png")) > 0
-  net = ppo.network(ppo.Config(), 1)
-  template = net.init(jax.random.key(0), jnp.zeros((1, 16, 16, 9), jnp.uint8))
-  with open(os.path.join(out, "params.msgpack"), "rb") as f:
-    params = serialization.from_bytes(template, f.read())
+  cfg = ppo.Config(image_size=16, frame_skip=100)
+  params = ppo.load_params(cfg, os.path.join(out, "params.msgpack"))
+  template = jax.eval_shape(ppo.network(cfg, 1).init, jax.random.key(0),
+                            jnp.zeros((1, 16, 16, 9), jnp.uint8))
   assert jax.tree.map(np.shape, params) == jax.tree.map(np.shape, template)
+  assert all(np.isfinite(x).all() for x in jax.tree.leaves(params))
