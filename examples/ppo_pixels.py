@@ -597,6 +597,34 @@ def plot(rows: list[dict], path: str, title: str) -> None:
   plt.close(fig)
 
 
+def markdown(summary: dict) -> str:
+  """The run beside the anchor (`ANCHOR`), a markdown table (`summary.md`)."""
+  c, rows = summary["config"], summary.get("rows") or [{}]
+  ev = summary.get("eval", {})
+  fmt = lambda x: "–" if x is None or x != x else f"{x:,.1f}"
+  steps_to = lambda target: next((r["agent_steps"] for r in rows
+                                  if r.get("return_mean", 0) >= target), None)
+  a = summary["anchor"]
+  lines = [
+      "| run | device | pixels | envs | looks | agent steps | compile s | train s | wall s "
+      "| last return | agent steps to return ≥ 900 | protocol train / none / all |",
+      "|---|---|---|---:|---|---:|---:|---:|---:|---:|---:|---|",
+      f"| PPO (examples/ppo_pixels.py), {c['task']} | {summary.get('device', '?')} "
+      f"| {c['image_size']}×{c['image_size']} RGB, shadows {'on' if c['shadows'] else 'off'} "
+      f"| {c['num_envs']:,} | levels:{c['levels']} | {summary.get('agent_steps', 0):,} "
+      f"| {fmt(summary.get('compile_s'))} | {fmt(summary.get('train_s'))} "
+      f"| {fmt(summary.get('wall_s'))} | {fmt(rows[-1].get('return_mean'))} "
+      f"| {'–' if steps_to(900) is None else f'{steps_to(900):,}'} | "
+      + " / ".join(fmt(x) for x in (ev.get("train"),
+                                    ev.get("conditions", {}).get("none", {}).get("mean"),
+                                    ev.get("conditions", {}).get("all", {}).get("mean")))
+      + " |",
+      f"| anchor: MuJoCo Playground vision PPO, CartpoleBalance | {a['device']} "
+      f"| 64×64 grey, no textures or shadows | {a['num_envs']:,} | one | "
+      f"{a['env_steps']:,} env steps | – | about {a['train_minutes']} min | – | – | – | – |"]
+  return "\n".join(lines) + "\n"
+
+
 def parse(argv=None) -> tuple[Config, argparse.Namespace]:
   """The CLI's `Config` and its other options."""
   d = Config()
@@ -716,7 +744,10 @@ def main(argv=None) -> dict:
         compile_s=result.compile_s, agent_steps=result.agent_steps,
         conditions={c: dict(mean=float(result.mean(c)[0]), e_g=float(result.e_g(c)[0]))
                     for c in result.conditions}))
-  print(f"wrote {a.out}/metrics.json, returns.csv, returns.png, params.msgpack"
+  with open(os.path.join(a.out, "summary.md"), "w") as f:
+    f.write(markdown(summary))
+  print(markdown(summary))
+  print(f"wrote {a.out}/metrics.json, summary.md, returns.csv, returns.png, params.msgpack"
         + ("" if proto is None else ", eval.json, eval.md, eval.png"))
   return summary
 

@@ -223,6 +223,9 @@ def test_cli_trains_on_the_pixel_env_and_writes_after_every_chunk(tmp_path):
   assert saved["agent_steps"] == 96 and saved["compile_s"] > 0
   assert summary["rows"] == saved["rows"]
   assert os.path.getsize(os.path.join(out, "returns.png")) > 0
+  with open(os.path.join(out, "summary.md")) as f:
+    table = f.read().splitlines()
+  assert len(table) == 4 and "cartpole-balance" in table[2] and "| 96 |" in table[2]
   cfg = ppo.Config(image_size=16, frame_skip=100)
   params = ppo.load_params(cfg, os.path.join(out, "params.msgpack"))
   template = jax.eval_shape(ppo.network(cfg, 1).init, jax.random.key(0),
