@@ -27,7 +27,7 @@ return of the episodes that ended in it, losses), `returns.png`, `metrics.json`
 and `params.msgpack` (flax serialization), so a run stopped at any point leaves
 its results; at the end `eval.json`, `eval.md` and `eval.png` of the protocol.
 
-    python examples/ppo_pixels.py --task cartpole-balance --num-envs 2048 --out runs/ppo
+    python examples/ppo_pixels.py --task cartpole-balance --num-envs 2048 --out runs/ppo_cartpole
     python examples/ppo_pixels.py --task cartpole-balance --num-envs 16 --image-size 32 \\
         --unroll 16 --minibatches 4 --epochs 4 --total-steps 20000 --out /tmp/ppo_cpu
 
@@ -654,7 +654,7 @@ def parse(argv=None) -> tuple[Config, argparse.Namespace]:
   p.add_argument("--seed", type=int, default=d.seed)
   p.add_argument("--time-limit", type=float, default=None,
                  help="seconds; stop training cleanly before a chunk would pass it")
-  p.add_argument("--out", default="ppo_pixels")
+  p.add_argument("--out", default="runs/ppo_pixels")
   p.add_argument("--eval-visual-seeds", type=int, default=20)
   p.add_argument("--eval-dynamics-seeds", type=int, default=1)
   p.add_argument("--eval-train-episodes", type=int, default=20)
@@ -682,14 +682,18 @@ EVAL_KEYS = ("task", "levels", "vary", "image_size", "frame_stack", "frame_skip"
 
 def main(argv=None) -> dict:
   """Trains, writes the curve and checkpoint after every chunk, then runs the protocol."""
-  cfg, a = parse(argv)
-  conditions = None if a.eval_conditions == "every" else tuple(a.eval_conditions.split(","))
-  if a.eval_only and a.no_eval:
-    raise SystemExit("--eval-only and --no-eval exclude each other")
-  # Planned (and its options checked) before training; compiled after it.
-  proto = None if a.no_eval else protocol_plan(
-      cfg, visual_seeds=a.eval_visual_seeds, dynamics_seeds=a.eval_dynamics_seeds,
-      train_episodes=a.eval_train_episodes, conditions=conditions, max_envs=a.eval_max_envs)
+  try:
+    cfg, a = parse(argv)
+    if a.eval_only and a.no_eval:
+      raise ValueError("--eval-only and --no-eval exclude each other")
+    conditions = None if a.eval_conditions == "every" else tuple(a.eval_conditions.split(","))
+    # Planned (and its options checked) before training; compiled after it.
+    proto = None if a.no_eval else protocol_plan(
+        cfg, visual_seeds=a.eval_visual_seeds, dynamics_seeds=a.eval_dynamics_seeds,
+        train_episodes=a.eval_train_episodes, conditions=conditions,
+        max_envs=a.eval_max_envs)
+  except ValueError as e:
+    raise SystemExit(f"ppo_pixels: {e}") from None
   os.makedirs(a.out, exist_ok=True)
   csv_path, rows = os.path.join(a.out, "returns.csv"), []
   title = f"PPO {cfg.task}, {cfg.num_envs} envs, levels:{cfg.levels}, {cfg.image_size} px"

@@ -146,10 +146,10 @@ class ToyEnv:
 
 
 def test_rollout_bookkeeping_and_learning_on_a_toy_env():
-  cfg = ppo.Config(num_envs=4, unroll=8, epochs=4, minibatches=2, learning_rate=1e-2,
+  cfg = ppo.Config(num_envs=16, unroll=8, epochs=4, minibatches=2, learning_rate=1e-2,
                    anneal_lr=False, entropy_coef=0.0, reward_scale=1.0, frame_skip=1,
                    **TINY)
-  env = ToyEnv()
+  env = ToyEnv(num_envs=16)
   carry = ppo.init(env, jax.random.key(0), cfg)
   carry, m = ppo.run_chunk(env, carry, cfg=cfg, iterations=12)
   m = jax.device_get(m)
@@ -160,8 +160,8 @@ def test_rollout_bookkeeping_and_learning_on_a_toy_env():
   returns = m["return_sum"] / m["episodes"]
   assert ((0 <= returns) & (returns <= LENGTH)).all()
   # The policy learns to push (every positive action pays): from about half the
-  # steps paying to nearly all.
-  assert returns[:2].mean() < 0.75 * LENGTH < returns[-2:].mean()
+  # steps paying (the first policy's mean is near 0) to nearly all.
+  assert returns[0] < 0.67 * LENGTH and returns[-3:].mean() > 0.9 * LENGTH
 
 
 def test_train_stops_at_the_time_limit_after_a_whole_chunk():
@@ -200,6 +200,15 @@ def test_the_protocol_plan_uses_the_training_observations():
 def test_bad_configs_are_refused(change, match):
   with pytest.raises(ValueError, match=match):
     ppo.check(ppo.Config(**change))
+
+
+def test_the_cli_refuses_bad_evaluation_options_before_training(tmp_path):
+  out = str(tmp_path / "never")
+  with pytest.raises(SystemExit, match="conditions"):
+    ppo.main(["--eval-conditions", "none,colour", "--out", out])
+  with pytest.raises(SystemExit, match="exclude each other"):
+    ppo.main(["--eval-only", "--no-eval", "--out", out])
+  assert not os.path.exists(out)
 
 
 @pytest.mark.slow
