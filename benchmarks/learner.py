@@ -7,10 +7,7 @@ replay buffer (random 84×84 frames, 3-frame stacks rebuilt at sampling, as in
 training), with the paper's defaults (batch 256, DrQ augmentation, β = .9,
 λ = 1e-5). Each row varies the number of agents K, the compute dtype (float32,
 bfloat16), how the agents are batched (``vmap``: one batched computation,
-``map``: one after the other inside the call, ``vmap_gemm`` / ``vmap_split``:
-``vmap`` with each convolution one batched GEMM over the agents / K plain ones;
-`dmcr_jax.train.step`; at K = 1 ``vmap`` and ``map`` are one program, the other
-two get their own rows) and, with ``--algos``, the
+``map``: one after the other inside the call) and, with ``--algos``, the
 algorithm (`dmcr_jax.train.sac.ALGOS`; each at its own defaults: CURL samples 100×100
 frames and crops them to 84, SAC+AE uses batch 128 unless ``--batch`` is given). The baseline measured in the same
 run is a plain Python loop over one jitted `sac.update` per gradient step (one
@@ -34,7 +31,7 @@ efficiency: its agent-updates/s over D times those of the same row on one device
 Usage::
 
     python -m dmcr_jax.benchmarks.learner [--agents 1,8] [--dtypes float32,bfloat16] \\
-        [--loops vmap,map,vmap_gemm,vmap_split] [--algos sac_aug,curl,sac_ae] [--augs drq,cj+drq] [--batch 256] \\
+        [--loops vmap,map] [--algos sac_aug,curl,sac_ae] [--augs drq,cj+drq] [--batch 256] \\
         [--pairs 25] [--devices 1,2,4,8] [--out PATH]
 """
 
@@ -115,14 +112,6 @@ def scaling_efficiency(rate: float | None, rate_one: float | None, devices: int
   return round(rate / (devices * rate_one), 3)
 
 
-def loops_for(k: int, loops: list[str]) -> list[str]:
-  """The agent loops measured at K agents: all of `loops` for K > 1; for one agent
-  "vmap" ("map" runs the same program) and the others asked for."""
-  if k > 1:
-    return loops
-  return ["vmap"] + [name for name in loops if name not in ("vmap", "map")]
-
-
 def _agents(k: int, obs_shape, action_size: int, config: sac.SACConfig):
   return jax.vmap(lambda s: sac.init_agent(jax.random.key(s), obs_shape, action_size,
                                            config))(jnp.arange(k))
@@ -164,10 +153,9 @@ def scanned_workload(k: int = 1, dtype: str = "float32", agent_loop: str = "vmap
   def call():
     learner[0] = update(learner[0])   # donated: the buffers pass through unchanged
     return learner[0].agents
-  # The lowered module (traced only) and the compiled one (its text for
-  # dmcr_jax.benchmarks.profile --by source, its cost for --cost; compiles again).
-  call.lowered = lambda: train_step.learn_jit.lower(learner[0], **update.keywords)
-  call.compiled = lambda: call.lowered().compile()
+  # The compiled module (its text for dmcr_jax.benchmarks.profile --by source, its cost for
+  # --cost); compiles again.
+  call.compiled = lambda: train_step.learn_jit.lower(learner[0], **update.keywords).compile()
   call.hlo_text = lambda: call.compiled().as_text()
   return call, config, size
 
@@ -258,8 +246,7 @@ def variant(row: dict) -> str:
     return PYTHON_LOOP
   algo, k, n = row.get("algo", "sac_aug"), row["agents"], row.get("devices") or 1
   return (("" if algo == "sac_aug" else f"{algo} ") + f"K={k} {row['dtype']}"
-          + (f" {row['agent_loop']}" if k > 1 or row["agent_loop"] not in ("vmap", "map")
-             else "") + (f" on {n} devices" if n > 1 else ""))
+          + (f" {row['agent_loop']}" if k > 1 else "") + (f" on {n} devices" if n > 1 else ""))
 
 
 def update_cost(dtype: str = "float32", algo: str = "sac_aug", batch: int | None = None,
@@ -282,9 +269,7 @@ def main(argv=None) -> None:
   p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   p.add_argument("--agents", default="1,8", help="comma-separated K values")
   p.add_argument("--dtypes", default="float32,bfloat16")
-  p.add_argument("--loops", default="vmap,map",
-                 help="agent batching: vmap, map, vmap_gemm, vmap_split (K = 1: vmap, "
-                      "and vmap_gemm, vmap_split if listed)")
+  p.add_argument("--loops", default="vmap,map", help="agent batching for K > 1")
   p.add_argument("--algos", default="sac_aug", help="comma-separated: sac_aug, curl, sac_ae")
   p.add_argument("--augs", default=None,
                  help="comma-separated augmentations (`dmcr_jax.augment` names, e.g. "
@@ -351,7 +336,7 @@ def main(argv=None) -> None:
   for algo, aug in [(al, au) for al in a.algos.split(",") for au in augs]:
     for k in agents:
       for dtype in a.dtypes.split(","):
-        for agent_loop in loops_for(k, a.loops.split(",")):
+        for agent_loop in (a.loops.split(",") if k > 1 else ["vmap"]):
           for n in counts:
             todo.append(functools.partial(bench_scanned, k, dtype, agent_loop,
                                           pairs=a.pairs, algo=algo, aug=aug, devices=n,

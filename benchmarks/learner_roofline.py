@@ -1,11 +1,12 @@
 """FLOPs and bytes of one SAC+AUG update pair per op category, K agents, from its HLO.
 
 Lowers (traces only: nothing compiles or runs, so it works on any machine)
-`dmcr_jax.train.step.learn_jit` for one update pair of K agents, as
-`dmcr_jax.benchmarks.learner` runs it, and counts each instruction of the
-unoptimised HLO once per execution (computations called from several sites count
-per site; while bodies once: one pair, and the "vmap" loops have no loop over
-agents; reducers' bodies are part of their reduce). Per op:
+`dmcr_jax.train.step.learn_jit` for one update pair of K agents with the agent
+loop "vmap", as `dmcr_jax.benchmarks.learner` runs it ("map" runs the K = 1
+program K times: its counts per agent-update are the K = 1 ones), and counts
+each instruction of the unoptimised HLO once per execution (computations called
+from several sites count per site; while bodies once: one pair; reducers' bodies
+are part of their reduce). Per op:
 
 - FLOPs: a dot 2·|out|·|contracted|; a convolution 2·|out|·|kernel|/out-features
   (grouped or not); an elementwise op or a reduce one per output or input element.
@@ -22,8 +23,8 @@ bandwidth) at the rates given (default: an H200, bf16 dense 989 TFLOP/s and
 
 Usage::
 
-    python -m dmcr_jax.benchmarks.learner_roofline [--agents 1,8] \\
-        [--loops vmap,vmap_gemm,vmap_split] [--dtype bfloat16] [--out PATH.md]
+    python -m dmcr_jax.benchmarks.learner_roofline [--agents 1,8] [--dtype bfloat16] \\
+        [--impl blocks] [--out PATH.md]
 """
 
 from __future__ import annotations
@@ -165,17 +166,17 @@ def hlo_costs(text: str) -> dict[str, dict[str, float]]:
   return totals
 
 
-def lowered_text(k: int, agent_loop: str, dtype: str = "bfloat16", batch: int = 256,
-                 size: int = 84, stack: int = 3, action_size: int = 6) -> str:
-  """The unoptimised HLO of one update pair of K agents (`learn_jit`, pairs = 1),
-  lowered from abstract shapes (nothing is initialised, compiled or run)."""
+def lowered_text(k: int, dtype: str = "bfloat16", batch: int = 256, size: int = 84,
+                 stack: int = 3, action_size: int = 6) -> str:
+  """The unoptimised HLO of one update pair of K vmapped agents (`learn_jit`,
+  pairs = 1), lowered from abstract shapes (nothing is initialised, compiled or run)."""
   import jax
   from dmcr_jax.benchmarks.learner import _agents, filled_buffers
   from dmcr_jax.train import sac
   from dmcr_jax.train import step as train_step
   config = sac.SACConfig(batch_size=batch, compute_dtype=dtype)
   spec = train_step.StepSpec(agents=k, num_envs=1, warmup_steps=0, utd=1.0, sac=config,
-                             agent_loop=agent_loop, low=(-1.0,) * action_size,
+                             agent_loop="vmap", low=(-1.0,) * action_size,
                              high=(1.0,) * action_size)
   obs_shape = (size, size, 3 * stack)
   learner = jax.eval_shape(lambda: train_step.init_learner(
@@ -184,17 +185,17 @@ def lowered_text(k: int, agent_loop: str, dtype: str = "bfloat16", batch: int = 
   return train_step.learn_jit.lower(learner, pairs=1, spec=spec).as_text(dialect="hlo")
 
 
-def markdown(results: list[tuple[int, str, dict]], peak_tflops: float, tbps: float) -> str:
-  """One table: per (K, loop) and category, GFLOP, GB and the roofline ms per
-  agent-update, and which bound it is."""
+def markdown(results: list[tuple[int, dict]], peak_tflops: float, tbps: float) -> str:
+  """One table: per K and category (`hlo_costs`' totals), GFLOP, GB and the
+  roofline ms per agent-update, and which bound it is."""
   lines = []
-  for k, loop, totals in results:
+  for k, totals in results:
     per = 2 * k  # updates in the pair, all agents
     for name, t in totals.items():
       if not t["ops"]:
         continue
       compute, memory = t["flops"] / (peak_tflops * 1e12), t["bytes"] / (tbps * 1e12)
-      lines.append(dict(k=k, loop=loop, category=name, ops=t["ops"],
+      lines.append(dict(k=k, category=name, ops=t["ops"],
                         gflop=t["flops"] / per / 1e9, gb=t["bytes"] / per / 1e9,
                         ms=max(compute, memory) / per * 1e3,
                         bound="compute" if compute >= memory else "memory",
@@ -203,11 +204,11 @@ def markdown(results: list[tuple[int, str, dict]], peak_tflops: float, tbps: flo
     nbytes = sum(t["bytes"] for t in totals.values())
     ms = sum(max(t["flops"] / (peak_tflops * 1e12), t["bytes"] / (tbps * 1e12))
              for t in totals.values()) / per * 1e3
-    lines.append(dict(k=k, loop=loop, category="**all**",
+    lines.append(dict(k=k, category="**all**",
                       ops=sum(t["ops"] for t in totals.values()), gflop=flops / per / 1e9,
                       gb=nbytes / per / 1e9, ms=ms, bound="", intensity=flops / nbytes))
   return R.table(lines, [
-      ("K", "k"), ("agent loop", "loop"), ("category", "category"),
+      ("K", "k"), ("category", "category"),
       ("ops per pair", "ops"), ("GFLOP per agent-update", lambda r: f"{r['gflop']:.2f}"),
       ("GB per agent-update", lambda r: f"{r['gb']:.3f}"),
       ("FLOP/byte", lambda r: f"{r['intensity']:.0f}"),
@@ -218,8 +219,6 @@ def main(argv=None) -> None:
   """Command-line entry: the table, printed and written to --out."""
   p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   p.add_argument("--agents", default="1,8")
-  p.add_argument("--loops", default="vmap,vmap_gemm,vmap_split",
-                 help="agent loops (K = 1 also runs each; map is K× the K = 1 program)")
   p.add_argument("--dtype", default="bfloat16")
   p.add_argument("--impl", default="blocks", choices=("pixels", "blocks"),
                  help="the encoder's layout (default: the GPU's, blocks)")
@@ -227,16 +226,12 @@ def main(argv=None) -> None:
   p.add_argument("--tbps", type=float, default=4.8, help="memory bandwidth, TB/s")
   p.add_argument("--out", default=None, help="Markdown file (default: print only)")
   a = p.parse_args(argv)
-  from dmcr_jax.train import config, layouts
-  for name in a.loops.split(","):
-    if name not in config.AGENT_LOOPS or name == "map":
-      p.error(f"--loops: {name!r} is not one of vmap, vmap_gemm, vmap_split")
+  from dmcr_jax.train import layouts
   layouts.default_impl = lambda platform=None: a.impl  # the layout to count
   results = []
   for k in [int(x) for x in a.agents.split(",")]:
-    for loop in a.loops.split(","):
-      results.append((k, loop, hlo_costs(lowered_text(k, loop, a.dtype))))
-      print(f"K={k} {loop}: lowered", file=sys.stderr, flush=True)
+    results.append((k, hlo_costs(lowered_text(k, a.dtype))))
+    print(f"K={k}: lowered", file=sys.stderr, flush=True)
   table = markdown(results, a.peak_tflops, a.tbps)
   print(table)
   if a.out:

@@ -15,7 +15,7 @@ The command profiles the two workloads the open speed targets are about:
 
     python -m dmcr_jax.benchmarks.profile render --batch 1024 --chunk 1024 --out $OUT/prof
     python -m dmcr_jax.benchmarks.profile learner --dtype bfloat16 --out $OUT/prof
-    python -m dmcr_jax.benchmarks.profile learner --agents 8 --agent-loop vmap_gemm --out $OUT/prof8
+    python -m dmcr_jax.benchmarks.profile learner --agents 8 --agent-loop vmap --out $OUT/prof8
 
 Each writes ``summary.md`` (the top `--top` rows) and ``summary.json`` into --out
 beside the raw trace, and prints the table. ``--trace-dir`` puts the trace
@@ -231,8 +231,7 @@ def main(argv=None) -> None:
   p.add_argument("--pairs", type=int, default=5, help="learner: update pairs per call")
   p.add_argument("--agents", type=int, default=1, help="learner: agents K")
   p.add_argument("--agent-loop", default="vmap",
-                 help="learner: how the K agents are batched (vmap, map, vmap_gemm, "
-                      "vmap_split)")
+                 help="learner: how the K agents are batched (vmap, map)")
   p.add_argument("--calls", type=int, default=3, help="profiled calls")
   p.add_argument("--by", default="op", choices=GROUPINGS)
   p.add_argument("--top", type=int, default=30)

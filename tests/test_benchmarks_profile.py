@@ -97,13 +97,19 @@ def test_command_can_leave_only_the_summary(tmp_path, monkeypatch):
   assert trace.startswith(str(elsewhere)) and os.path.exists(trace)
 
 
-def test_command_rejects_bad_sizes(tmp_path, capsys):
+def test_command_rejects_bad_arguments(tmp_path, capsys):
   with pytest.raises(SystemExit):
     P.main(["render", "--batch", "0", "--out", str(tmp_path)])
   assert "--batch must be positive, got 0" in capsys.readouterr().err
   with pytest.raises(SystemExit):
     P.main(["learner", "--by", "name", "--out", str(tmp_path)])
   assert "invalid choice: 'name'" in capsys.readouterr().err
+  with pytest.raises(SystemExit):
+    P.main(["learner", "--agents", "0", "--out", str(tmp_path)])
+  assert "--agents must be positive, got 0" in capsys.readouterr().err
+  with pytest.raises(SystemExit):
+    P.main(["learner", "--agent-loop", "scan", "--out", str(tmp_path)])
+  assert "--agent-loop must be one of vmap, map, got 'scan'" in capsys.readouterr().err
 
 
 def _inner(x):

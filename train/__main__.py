@@ -148,10 +148,8 @@ def build_parser() -> argparse.ArgumentParser:
                  metavar="{" + ",".join(COMPUTE_DTYPES) + "}",
                  help="compute dtype of the networks")
   p.add_argument("--agent-loop", default=d.agent_loop, metavar="{" + ",".join(AGENT_LOOPS) + "}",
-                 help="how K agents' updates are batched: vmap, map (one after the "
-                      "other), vmap_gemm or vmap_split (vmap, each convolution a batched "
-                      "GEMM over the agents or K plain ones) (default: map on "
-                      "accelerators, vmap on CPU)")
+                 help="how K agents' updates are batched (default: map on accelerators, "
+                      "vmap on CPU)")
   p.add_argument("--checkpoint-every", type=int, default=d.checkpoint_every,
                  help="steps between checkpoints (0: only at the end and on Ctrl-C)")
   p.add_argument("--log-every", type=int, default=d.log_every,

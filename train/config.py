@@ -46,7 +46,7 @@ from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, SeedRange
 from dmcr_jax.train import devices as devs
 from dmcr_jax.train import sac
 
-AGENT_LOOPS = ("vmap", "map", "vmap_gemm", "vmap_split")
+AGENT_LOOPS = ("vmap", "map")
 """What `TrainConfig.agent_loop` accepts."""
 PHYSICS = ("auto", "cpu", "device")
 """What `TrainConfig.physics` accepts: "auto" (module doc), the host CPU, or the
@@ -104,9 +104,8 @@ class TrainConfig:
     log_every: steps between progress-bar and CSV metric updates.
     checkpoint_every: steps between checkpoints (0: only at the end / on a signal);
       checkpoints fall on the first vector step at or past each multiple.
-    agent_loop: "vmap", "map", "vmap_gemm" or "vmap_split", how the K agents' updates are
-      batched (`dmcr_jax.train.step`'s module doc); None picks by backend (module
-      doc).
+    agent_loop: "vmap" or "map", how the K agents' updates are batched; None picks
+      by backend (module doc).
     renderer: "pool" (the CPU render pool) or "jax" (the JAX ray caster; module
       doc).
     chunk_steps: with the device driver (renderer "jax", physics on the device),
@@ -452,7 +451,7 @@ class Plan:
     physics_device: `dmcr_jax.make`'s `physics_device` ("cpu", or None: the
       learner's device).
     physics_workers: physics worker processes (0: in the training process).
-    agent_loop: "vmap", "map", "vmap_gemm" or "vmap_split".
+    agent_loop: "vmap" or "map".
     devices: local devices the agent axis is sharded over (1 with the device
       driver).
     notes: lines `train` prints before it starts (why devices stay idle, where

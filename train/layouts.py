@@ -23,22 +23,9 @@ its implementation's layout, and elementwise functions apply to either with
 `jax.tree.map` (`Blocks.data` is its only array). `StrideTwoConvTranspose` is
 ``nn.ConvTranspose(features, (3, 3), strides=(2, 2), padding=((2, a), (2, a)))``
 computed in phases, without the zero-dilated input XLA would build.
-
-Every `Conv` convolution (either layout) is `conv_valid`. Inside
-`vmapped_convs(form)` (a trace-time setting: the agent loops "vmap_gemm" and
-"vmap_split" trace the vmapped update inside it) a convolution traced under
-`jax.vmap` over K, and its input and kernel gradients, run as one batched matrix
-product over the vmapped axis ("gemm", `patches_gemm`: the K inputs' patches
-(K, N·H'·W', kh·kw·C_in) times the K kernels (K, kh·kw·C_in, C_out)) or as K
-plain convolutions ("split"), where plain `jax.vmap` gives one grouped
-convolution (``feature_group_count`` K); unvmapped it is the plain convolution.
 """
 
 from __future__ import annotations
-
-import contextlib
-import contextvars
-import functools
 
 import flax.linen as nn
 import flax.struct
@@ -72,148 +59,6 @@ def resolve_impl(impl: str | None) -> str:
   if impl not in IMPLS:
     raise ValueError(f"impl must be one of {', '.join(IMPLS)} (or None), got {impl!r}")
   return impl
-
-
-# --------------------------------------------------------------------------- #
-# The convolution, and K vmapped convolutions without grouping.
-# --------------------------------------------------------------------------- #
-
-VMAPPED_CONVS = ("gemm", "split")
-"""What `vmapped_convs` accepts: how K vmapped convolutions are computed."""
-
-_VMAPPED_CONVS = contextvars.ContextVar("vmapped_convs", default=None)
-
-
-@contextlib.contextmanager
-def vmapped_convs(form: str):
-  """While tracing inside it, `conv_valid` under `jax.vmap` over K is computed as `form`.
-
-  "gemm": one batched matrix product over the vmapped axis (`patches_gemm`);
-  "split": K plain convolutions, one per slice of the vmapped axis. Their input
-  and kernel gradients are computed the same way (`_vmapped_conv`). Outside it,
-  a vmapped convolution is JAX's: one grouped convolution.
-
-  A trace-time setting (as `jax.default_matmul_precision`): it decides what a
-  function traced inside it computes, not when it runs; the agent loops
-  "vmap_gemm" and "vmap_split" (`dmcr_jax.train.step.over_agents`) trace their
-  vmapped update in it. It is per thread (a `contextvars` variable) and not part
-  of any jit cache key: jit a function traced in it under a static argument that
-  says so.
-
-  Raises:
-    ValueError: for a form not in `VMAPPED_CONVS`.
-  """
-  if form not in VMAPPED_CONVS:
-    raise ValueError(f"form must be one of {', '.join(VMAPPED_CONVS)}, got {form!r}")
-  token = _VMAPPED_CONVS.set(form)
-  try:
-    yield
-  finally:
-    _VMAPPED_CONVS.reset(token)
-
-
-def conv_valid(x: jax.Array, kernel: jax.Array, strides: tuple[int, int] = (1, 1),
-               precision: jax.lax.PrecisionLike = None) -> jax.Array:
-  """The VALID convolution (no bias) of (B, H, W, C_in) images with a HWIO kernel.
-
-  ``lax.conv_general_dilated(x, kernel, strides, "VALID")`` in NHWC / HWIO / NHWC;
-  inside `vmapped_convs` the same function with a custom batching rule
-  (`_vmapped_conv`), gradients included.
-
-  Returns:
-    (B, (H − kh)//s_h + 1, (W − kw)//s_w + 1, C_out).
-  """
-  strides = tuple(int(s) for s in strides)
-  form = _VMAPPED_CONVS.get()
-  if form is not None:
-    return _vmapped_conv(strides, precision, form)(x, kernel)
-  return _plain_conv(x, kernel, strides, precision)
-
-
-def _plain_conv(x, kernel, strides, precision):
-  return jax.lax.conv_general_dilated(x, kernel, strides, "VALID", dimension_numbers=_DIMS,
-                                      precision=precision)
-
-
-def patches_gemm(x: jax.Array, kernel: jax.Array, strides: tuple[int, int] = (1, 1),
-                 precision: jax.lax.PrecisionLike = None) -> jax.Array:
-  """K VALID convolutions, each of its own images and kernel, as one batched GEMM.
-
-  Output pixel (i, j) of image n of agent a is Σ_{u, v, c} x[a, n, s_h·i + u,
-  s_w·j + v, c]·kernel[a, u, v, c, o]: the kh·kw strided slices of x side by side
-  in (u, v, c) order are the patches (K, N·H'·W', kh·kw·C_in), the kernel in HWIO
-  order flattened is (K, kh·kw·C_in, C_out), and one `jnp.matmul` with the agent
-  as its batch dimension multiplies them. Its gradients are dot products and the
-  slices' transposes (pads); no convolution.
-
-  Args:
-    x: (K, N, H, W, C_in).
-    kernel: (K, kh, kw, C_in, C_out).
-    strides: (s_h, s_w).
-    precision: as `jnp.matmul`'s.
-
-  Returns:
-    (K, N, (H − kh)//s_h + 1, (W − kw)//s_w + 1, C_out), x's and the kernel's
-    promoted dtype.
-  """
-  k, n, h, w, c = x.shape
-  kh, kw, _, c_out = kernel.shape[1:]
-  (sh, sw), oh, ow = strides, (h - kh) // strides[0] + 1, (w - kw) // strides[1] + 1
-  taps = [x[:, :, u:u + sh * (oh - 1) + 1:sh, v:v + sw * (ow - 1) + 1:sw]
-          for u in range(kh) for v in range(kw)]
-  patches = jnp.concatenate(taps, axis=-1).reshape(k, n * oh * ow, kh * kw * c)
-  y = jnp.matmul(patches, kernel.reshape(k, kh * kw * c, c_out), precision=precision)
-  return y.reshape(k, n, oh, ow, c_out)
-
-
-def _batched_rule(fn):
-  """A `custom_vmap` rule running ``fn`` on arguments with the vmapped axis first
-  (unbatched ones broadcast to it); every output batched."""
-  def rule(axis_size, in_batched, *args):
-    args = [a if b else jnp.broadcast_to(a, (axis_size,) + a.shape)
-            for a, b in zip(args, in_batched)]
-    out = fn(*args)
-    return out, jax.tree.map(lambda _: True, out)
-  return rule
-
-
-def _split(fn):
-  """``fn`` of unbatched arguments, run once per index of their leading axis
-  (K calls, outputs stacked)."""
-  def split(*args):
-    outs = [fn(*(a[i] for a in args)) for i in range(args[0].shape[0])]
-    return jax.tree.map(lambda *x: jnp.stack(x), *outs)
-  return split
-
-
-@functools.lru_cache(maxsize=None)
-def _vmapped_conv(strides: tuple[int, int], precision, form: str):
-  """``conv(x, kernel)``: the plain convolution, batched over K as `form` says.
-
-  A `jax.custom_vjp` over a `custom_vmap` (JAX's pattern: `custom_vmap` has no
-  reverse-mode rule of its own), whose backward pass is a second `custom_vmap`:
-  unbatched, the plain convolution and its VJP (the convolutions autodiff
-  gives); batched, "gemm" runs `patches_gemm` and its VJP, "split" the plain
-  ones per slice of the vmapped axis. One function per (strides, precision, form).
-  """
-  plain = lambda x, k: _plain_conv(x, k, strides, precision)
-  plain_vjp = lambda x, k, g: jax.vjp(plain, x, k)[1](g)
-  if form == "gemm":
-    gemm = lambda xs, ks: patches_gemm(xs, ks, strides, precision)
-    batched, batched_vjp = gemm, lambda xs, ks, gs: jax.vjp(gemm, xs, ks)[1](gs)
-  else:
-    batched, batched_vjp = _split(plain), _split(plain_vjp)
-
-  forward = jax.custom_batching.custom_vmap(plain)
-  forward.def_vmap(_batched_rule(batched))
-  backward = jax.custom_batching.custom_vmap(plain_vjp)
-  backward.def_vmap(_batched_rule(batched_vjp))
-
-  @jax.custom_vjp
-  def conv(x, k):
-    return forward(x, k)
-  conv.defvjp(lambda x, k: (forward(x, k), (x, k)), lambda res, g: backward(*res, g))
-  return conv
 
 
 # --------------------------------------------------------------------------- #
@@ -420,7 +265,8 @@ def stride_two_conv(x: jax.Array, kernel: jax.Array, channel_multiple: int | Non
   extra = data.shape[-1] - block_kernel.shape[2]  # the blocks' zero channels
   if extra:
     block_kernel = jnp.pad(block_kernel, ((0, 0), (0, 0), (0, extra), (0, 0)))
-  return conv_valid(data, block_kernel, (1, 1), precision)
+  return jax.lax.conv_general_dilated(data, block_kernel, (1, 1), "VALID",
+                                      dimension_numbers=_DIMS, precision=precision)
 
 
 # --------------------------------------------------------------------------- #
@@ -474,7 +320,8 @@ def block_conv(x: Blocks, kernel: jax.Array,
   """
   if min(x.height, x.width) < 3:
     raise ValueError(f"expected images with H, W ≥ 3, got shape {x.shape}")
-  y = conv_valid(x.data, stride_one_block_kernel(kernel), (1, 1), precision)
+  y = jax.lax.conv_general_dilated(x.data, stride_one_block_kernel(kernel), (1, 1), "VALID",
+                                   dimension_numbers=_DIMS, precision=precision)
   return Blocks(y, x.height - 2, x.width - 2)
 
 
@@ -555,7 +402,9 @@ class Conv(nn.Module):
     x, kernel, bias = nn.dtypes.promote_dtype(to_pixels(x), kernel, bias, dtype=self.dtype)
     if impl == "blocks":  # stride 2
       return to_blocks(stride_two_conv(x, kernel, precision=self.precision) + bias)
-    return conv_valid(x, kernel, (self.strides,) * 2, self.precision) + bias
+    y = jax.lax.conv_general_dilated(x, kernel, (self.strides,) * 2, "VALID",
+                                     dimension_numbers=_DIMS, precision=self.precision)
+    return y + bias
 
 
 class Dense(nn.Module):

@@ -30,18 +30,14 @@ one XLA call per chunk of steps.
 
 Agent batching (`StepSpec.agent_loop`): "vmap" runs the K agents' updates as one
 batched computation (their convolutions become grouped convolutions); "map" runs
-them one after the other in the same call (`jax.lax.map`); "vmap_gemm" is "vmap"
-with each convolution of the K agents (forward and gradients) one batched matrix
-product over the agent axis, and "vmap_split" is "vmap" with K plain convolutions
-instead (`dmcr_jax.train.layouts.vmapped_convs`), for the updates and for acting
-(`benchmarks/learner.py` compares them). With a `mesh`, the agent axis is split
+them one after the other in the same call (`jax.lax.map`), faster on GPUs for
+several agents (`benchmarks/learner.py`). With a `mesh`, the agent axis is split
 over its devices with `shard_map` (each device runs the vmapped function on its
 own agents).
 """
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 
 import jax
@@ -49,7 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from dmcr_jax.train import layouts, replay, sac
+from dmcr_jax.train import replay, sac
 
 
 @struct.dataclass
@@ -81,7 +77,7 @@ class StepSpec:
     warmup_steps: random-action transitions per agent before learning.
     utd: gradient updates per transition.
     sac: the learner's hyperparameters.
-    agent_loop: "vmap", "map", "vmap_gemm" or "vmap_split" (module doc).
+    agent_loop: "vmap" or "map" (module doc).
     low, high: the env's action bounds (policy actions in [−1, 1] map onto them).
   """
   agents: int
@@ -141,9 +137,8 @@ def act(learner: Learner, obs: jax.Array, spec: StepSpec, mesh=None):
   # The warm-up flag travels with the agent axis, so `shard_map` splits it too.
   random = jnp.broadcast_to(learner.step < spec.warmup_steps, (k,))
   fn = lambda agents, obs, keys, random: policy_actions(agents, obs, keys, random[0])
-  with agent_batching(spec.agent_loop):
-    action = _agent_parallel(fn, mesh)(learner.agents, obs, jax.random.split(k_act, k),
-                                       random)
+  action = _agent_parallel(fn, mesh)(learner.agents, obs, jax.random.split(k_act, k),
+                                     random)
   env_action = to_env_action(action.reshape(k * n, -1), spec.low, spec.high)
   return learner.replace(key=key, step=learner.step + n), action, env_action
 
@@ -223,28 +218,12 @@ def update_pair(agent: sac.AgentState, buffer: replay.ReplayBuffer, key: jax.Arr
   return sac.update_pair(agent, batches, k_update, config)
 
 
-_VMAPPED_CONVS = {"vmap_gemm": "gemm", "vmap_split": "split"}
-"""The agent loops that vmap the agents with `layouts.vmapped_convs`, and its form."""
-
-
-def agent_batching(agent_loop: str):
-  """The context the agents' vmapped networks are traced in: `layouts.vmapped_convs`
-  for "vmap_gemm" and "vmap_split", else none."""
-  form = _VMAPPED_CONVS.get(agent_loop)
-  return contextlib.nullcontext() if form is None else layouts.vmapped_convs(form)
-
-
 def over_agents(one_agent, agent_loop: str, num_agents: int):
   """`one_agent(agent, buffer, key)` batched over the agent axis: "vmap" batches
-  the agents, "map" runs them one after the other, "vmap_gemm" and "vmap_split"
-  batch them with their convolutions as batched GEMMs or apart (module doc)."""
+  the agents, "map" runs them one after the other (module doc)."""
   if agent_loop == "map" and num_agents > 1:
     return lambda *args: jax.lax.map(lambda a: one_agent(*a), args)
-
-  def batched(*args):
-    with agent_batching(agent_loop):  # traced here, inside shard_map if any
-      return jax.vmap(one_agent)(*args)
-  return batched
+  return jax.vmap(one_agent)
 
 
 def update_agents(agents, buffers, key, pairs, spec: StepSpec, names: tuple[str, ...],
