@@ -35,6 +35,10 @@ waiting for it) followed by `step_wait` (waits for the physics, renders,
 returns gymnasium's step tuple), as in gymnasium's `AsyncVectorEnv`: a caller can
 dispatch its own device work between the two (a training loop dispatches its
 gradient updates there), so that work and the env step run at the same time.
+The pool env splits `step_wait` once more: `step_submit` waits for the physics
+and hands the frames to the render workers, `step_wait` then waits for them, so
+the caller can work while the workers draw (`dmcr_jax.protocol` steps two envs'
+physics and policy so, each while the other's frames are drawn).
 
 Physics device (`physics_device=`): None runs the physics on JAX's default
 device; "cpu" on the host's CPU (XLA:CPU), where a small batch (a few dozen envs)
@@ -442,13 +446,18 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     self._check_open()
     if self._pending is None:
       raise RuntimeError("step_wait() without a pending step_async()")
-    (t0, resetting, stepped), self._pending = self._pending, None
-    if isinstance(stepped, PendingStep):  # physics workers
-      stepped = stepped.result()
-    obs, host = self._finish_step(t0, resetting, *stepped)
+    pending, self._pending = self._pending, None
+    obs, host = self._complete(*pending)
     self.timed_steps += 1
     terminated = np.zeros(self.num_envs, bool)
     return obs, host["reward"], terminated, host["truncated"], self._info(host)
+
+  def _complete(self, t0, resetting, stepped):
+    """(obs, host fields) of the pending step: waits for its physics, then
+    `_finish_step`."""
+    if isinstance(stepped, PendingStep):  # physics workers
+      stepped = stepped.result()
+    return self._finish_step(t0, resetting, *stepped)
 
   def render(self) -> np.ndarray | None:
     """The latest frame of every env, uint8 (N, H, W, 3) (None before reset)."""
@@ -521,6 +530,19 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     return info
 
 
+def _vary_key(vary) -> str | tuple:
+  """A `vary` value as a hashable key (a sequence of factors as a tuple)."""
+  return vary if isinstance(vary, str) else tuple(vary)
+
+
+class _Frames:
+  """A step whose frames `PixelVectorEnv.step_submit` handed to the workers:
+  its host fields (`host`)."""
+
+  def __init__(self, host: dict):
+    self.host = host
+
+
 class PixelVectorEnv(_PixelEnvBase):
   """N DMCR envs with pixel observations from the CPU render pool (a gymnasium
   `VectorEnv`).
@@ -557,22 +579,59 @@ class PixelVectorEnv(_PixelEnvBase):
     self._use_seeds()
     self._looks = None
     self._look_seeds = None
+    self._env_varies = None   # per-env factors (`set_looks`), else `vary` for all
     self._needs_reset = np.zeros(n, bool)
+
+  def step_submit(self) -> None:
+    """Waits for the physics `step_async` dispatched and hands the step's frames
+    to the render workers without waiting for them; `step_wait` then waits for
+    the frames and returns what `step` returns (the same pixels). In between,
+    the caller can work while the workers draw (e.g. step another env's physics
+    and policy: `dmcr_jax.protocol` pipelines two envs so).
+
+    Raises:
+      RuntimeError: no `step_async` pending (or its frames already submitted),
+        or after `close`.
+    """
+    self._check_open()
+    if self._pending is None or isinstance(self._pending[2], _Frames):
+      raise RuntimeError("step_submit() without a pending step_async()")
+    (t0, resetting, stepped), self._pending = self._pending, None
+    if isinstance(stepped, PendingStep):  # physics workers
+      stepped = stepped.result()
+    self._pending = (t0, resetting, self._submit_frames(t0, *stepped))
 
   def _finish_step(self, t0, resetting, es, reward, truncated):
     """Waits for the physics, fetches what rendering needs, renders and stacks."""
+    return self._collect_frames(self._submit_frames(t0, es, reward, truncated))
+
+  def _complete(self, t0, resetting, stepped):
+    if isinstance(stepped, _Frames):  # submitted by step_submit
+      return self._collect_frames(stepped)
+    return super()._complete(t0, resetting, stepped)
+
+  def _submit_frames(self, t0, es, reward, truncated) -> _Frames:
+    """Waits for the physics, fetches what rendering needs and submits the frames."""
     self._es = jax.block_until_ready(es)
     t1 = time.perf_counter()
     host = self._fetch(self._es, reward, truncated)
     t2 = time.perf_counter()
-    stacked = self._render(host, restart=self._needs_reset)
-    t3 = time.perf_counter()
+    self._render(host, restart=self._needs_reset, wait=False)
+    self.timings["physics"] += t1 - t0
+    self.timings["transfer"] += t2 - t1
+    self.timings["render"] += time.perf_counter() - t2
+    return _Frames(host)
+
+  def _collect_frames(self, frames: _Frames):
+    """Waits for the submitted frames and stacks; (obs, host fields)."""
+    t0 = time.perf_counter()
+    stacked = self._pool.collect(copy_out=False)
+    t1 = time.perf_counter()
     obs = self._obs = self._output(stacked)
-    self._needs_reset = host["truncated"]
-    t4 = time.perf_counter()
-    for part, dt in zip(TIMING_PARTS, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
-      self.timings[part] += dt
-    return obs, host
+    self._needs_reset = frames.host["truncated"]
+    self.timings["render"] += t1 - t0
+    self.timings["copy"] += time.perf_counter() - t1
+    return obs, frames.host
 
   def close(self, **kwargs) -> None:
     """Stops the render and physics workers (idempotent)."""
@@ -589,7 +648,8 @@ class PixelVectorEnv(_PixelEnvBase):
 
   def set_visuals(self, visual_seeds: Any, vary: str | Sequence[str] | None = None) -> None:
     super().set_visuals(visual_seeds, vary)
-    self._looks = self._look_seeds = None
+    self._drain()
+    self._looks = self._look_seeds = self._env_varies = None
 
   set_visuals.__doc__ = _PixelEnvBase.set_visuals.__doc__
 
@@ -598,6 +658,7 @@ class PixelVectorEnv(_PixelEnvBase):
 
   def _start_from(self, es: physics_env.EnvState):
     """Makes `es` the current state and renders fresh frame stacks from it."""
+    self._drain()
     self._es = es
     host = self._fetch(es, None, None)
     self._obs = self._output(self._render(host, restart=None))
@@ -607,21 +668,71 @@ class PixelVectorEnv(_PixelEnvBase):
   def _use_seeds(self) -> None:
     self._use_physics()
 
+  def _drain(self) -> None:
+    """Waits for (and drops) frames `step_submit` handed out and no `step_wait`
+    collected (a reset or new looks end that step)."""
+    if self._pool is not None and self._pool.busy:
+      self._pool.collect(copy_out=False)
+
   def _fetch(self, es: physics_env.EnvState, reward, truncated) -> dict:
     out = self._host_fields(es, reward, truncated)
     out["qpos"] = es.task.data.qpos
     out["variables"] = {k: es.task.info[k] for k in self.task.model_variable_ids}
     return jax.device_get(out)
 
-  def _update_looks(self, seeds: np.ndarray) -> None:
+  def set_looks(self, visual_seeds, varies: Sequence) -> None:
+    """Fixed looks with factors of their own: env i shows visual seed
+    `visual_seeds[i]` under the factors `varies[i]` (each as `make`'s `vary`), so
+    envs of several visual conditions step as one batch (the pool env only).
+    `set_visuals` gives every env one `vary` again. The running episodes end:
+    call `reset` next.
+
+    Args:
+      visual_seeds: N ints ≥ 0.
+      varies: N values of `vary` ("none", "floor", "all", …).
+
+    Raises:
+      ValueError: not N seeds and N varies, a bad seed or factor (the env is
+        left unchanged).
+    """
+    varies = list(varies)
+    if (np.ndim(visual_seeds) != 1 or len(varies) != self.num_envs
+        or any(isinstance(v, SeedRange) for v in visual_seeds)):
+      raise ValueError(f"set_looks takes {self.num_envs} visual seeds and {self.num_envs} "
+                       f"varies (one each per env), got {np.shape(visual_seeds)} seeds and "
+                       f"{len(varies)} varies")
+    for v in {_vary_key(v): v for v in varies}.values():
+      check_vary(self.domain, v)
+    self.set_visuals(visual_seeds)
+    self._env_varies = varies
+
+  def _looks_of(self, seeds: np.ndarray, rows: np.ndarray) -> rmod.Looks:
+    """The prepared looks of envs `rows` showing `seeds`, each under its factors."""
     rm = self._pool.rm
+    if self._env_varies is None:
+      return rmod.prepare(rm, rm.sample(seeds, vary=self.vary))
+    varies = [self._env_varies[i] for i in rows]
+    keys = [_vary_key(v) for v in varies]
+    out = None
+    for key in dict.fromkeys(keys):
+      sel = np.flatnonzero([k == key for k in keys])
+      part = rmod.prepare(rm, rm.sample(seeds[sel], vary=varies[sel[0]]))
+      if out is None:
+        out = rmod.Looks(**{f: np.empty((len(rows),) + getattr(part, f).shape[1:],
+                                        getattr(part, f).dtype)
+                            for f in rmod.Looks.__dataclass_fields__})
+      for f in rmod.Looks.__dataclass_fields__:
+        getattr(out, f)[sel] = getattr(part, f)
+    return out
+
+  def _update_looks(self, seeds: np.ndarray) -> None:
     if self._looks is None:
       changed = np.arange(len(seeds))
     else:
       changed = np.flatnonzero(seeds != self._look_seeds)
       if not len(changed):
         return
-    new = rmod.prepare(rm, rm.sample(seeds[changed], vary=self.vary))
+    new = self._looks_of(seeds[changed], changed)
     if self._looks is None:
       self._looks = new
     else:
@@ -632,12 +743,14 @@ class PixelVectorEnv(_PixelEnvBase):
   def _output(self, stacked: np.ndarray) -> np.ndarray:
     return stacked.copy() if self.copy_obs else stacked
 
-  def _render(self, host: dict, restart) -> np.ndarray:
+  def _render(self, host: dict, restart, wait: bool = True) -> np.ndarray | None:
+    """The stacked frames of `host`'s envs (a view of shared memory); with
+    `wait=False` only submitted (`RenderPool.collect` waits)."""
     if self._pool is None:
       raise RuntimeError("the env is closed")
     self._update_looks(np.asarray(host["visual_seed"]))
-    return self._pool.render(host["qpos"], self._looks,
-                             host["variables"], restart=restart, copy_out=False)
+    self._pool.submit(host["qpos"], self._looks, host["variables"], restart=restart)
+    return self._pool.collect(copy_out=False) if wait else None
 
 
 class JaxPixelVectorEnv(_PixelEnvBase):

@@ -26,8 +26,10 @@ of one shape, so one compilation serves every block): per block one jitted call
 makes the looks from the per-env seeds and factor masks, resets the physics from
 the per-env seeds and `lax.scan`s the episode with the policy inside, with no host
 round trip per step. "pool" renders MuJoCo's own pixels in the CPU render pool
-(`dmcr_jax.make`), every condition's envs in one batch, the same jitted policy
-called from the host loop. Returns are those of `dmcr_jax.make`'s env stepped by
+(`dmcr_jax.make`), every condition's envs in one block (`PixelVectorEnv.set_looks`),
+the same jitted policy called from the host loop; a block steps as two pipelined
+groups of envs (`pool_groups`), a group's physics and policy running while the
+workers draw the other's frames. Returns are those of `dmcr_jax.make`'s env stepped by
 the same policy (`tests/test_protocol.py`). The policy is vmapped over envs: an
 env's action depends on its own observation and key alone, so the returns do not
 depend on `max_envs` or on the number of agents (up to the float rounding of a
@@ -533,29 +535,42 @@ class Protocol:
 
   @contextlib.contextmanager
   def _pool_runner(self, params, key):
-    """A context giving `run_block(inputs) -> returns (K·B,)` with the render pool (its
+    """A context giving `run_block(inputs) -> returns (K·B,)` with the render pool:
+    the block's envs as `pool_groups` pipelined groups, one pool env each (their
     workers stop when the context ends)."""
-    kw = self.env_kwargs
-    env = MixedLookPool(self.task, num_envs=self.block_envs, frame_skip=kw["frame_skip"],
-                        frame_stack=kw["frame_stack"], image_size=kw["image_size"],
-                        seed=self.config["seed"], **kw["render"])
-    low = np.asarray(env.single_action_space.low, np.float32)
-    high = np.asarray(env.single_action_space.high, np.float32)
+    from dmcr_jax.env import make
+    kw, k = self.env_kwargs, self.agents or 1
+    groups = pool_groups(k, self.block)
+    with contextlib.ExitStack() as stack:
+      envs = [stack.enter_context(make(
+          self.task, renderer="pool", num_envs=len(rows), frame_skip=kw["frame_skip"],
+          frame_stack=kw["frame_stack"], image_size=kw["image_size"],
+          seed=self.config["seed"], copy_obs=False, **kw["render"]))
+          for rows, _ in groups]
+      low = np.asarray(envs[0].single_action_space.low, np.float32)
+      high = np.asarray(envs[0].single_action_space.high, np.float32)
 
-    def run_block(inputs):
-      env.set_looks(inputs["seeds"], [self.plan.varies[i] for i in inputs["vary_index"]])
-      obs, _ = env.reset(seed=inputs["resets"])
-      index = jnp.asarray(inputs["index"])
-      for t in range(env.episode_length):
+      def act(env, obs, index, t):
         actions, worst = _pool_act(params, obs, index, np.int32(t), key, low, high,
                                    policy=self.policy, agents=self.agents)
         check_actions(np.asarray(worst))
-        obs, _, _, truncated, info = env.step(np.asarray(actions))
-      if not truncated.all():
-        raise RuntimeError("episodes did not all end together; the env's episode length "
-                           "is off")
-      return np.asarray(info["episode_return"], np.float64)
-    with env:
+        env.step_async(np.asarray(actions))
+
+      def run_block(inputs):
+        varies = [self.plan.varies[i] for i in inputs["vary_index"]]
+        index, obs = [], []
+        for env, (rows, _) in zip(envs, groups):
+          env.set_looks(inputs["seeds"][rows], [varies[i] for i in rows])
+          obs.append(env.reset(seed=inputs["resets"][rows])[0])
+          index.append(jnp.asarray(inputs["index"][rows]))
+        last = run_pipelined(envs, obs, index, act, self.episode_length)
+        out = np.empty(len(inputs["index"]), np.float64)
+        for (truncated, info), (rows, real) in zip(last, groups):
+          if not truncated.all():
+            raise RuntimeError("episodes did not all end together; the env's episode "
+                               "length is off")
+          out[rows[real]] = np.asarray(info["episode_return"], np.float64)[real]
+        return out
       yield run_block
 
 
@@ -598,44 +613,75 @@ def _pixel_env(task: str, num_envs: int, frame_skip: int, frame_stack: int, heig
       render_chunk=chunk, render_kernel=JR.use_kernel(opts.get("render_kernel", False)))
 
 
-@functools.cache
-def _mixed_pool_class():
-  from dmcr_jax.env import PixelVectorEnv
-  from dmcr_jax.visuals import render_model as rmod
-
-  class _MixedLookPool(PixelVectorEnv):
-    """The pool env with a `vary` per env: env i shows its seed under its own
-    factors (`set_looks`); the looks are made once per `set_looks`."""
-
-    def set_looks(self, seeds: np.ndarray, varies: Sequence[str]) -> None:
-      """Fixed seeds and per-env factors; the running episodes end (reset next)."""
-      self.set_visuals(np.asarray(seeds))
-      self._varies = list(varies)
-
-    def _update_looks(self, seeds: np.ndarray) -> None:
-      if self._looks is not None and np.array_equal(seeds, self._look_seeds):
-        return
-      varies = getattr(self, "_varies", [self.vary] * len(seeds))
-      rm, parts, order = self._pool.rm, [], []
-      for v in dict.fromkeys(varies):
-        rows = np.flatnonzero(np.asarray([x == v for x in varies]))
-        parts.append(rmod.prepare(rm, rm.sample(seeds[rows], vary=v)))
-        order.append(rows)
-      rows = np.concatenate(order)
-      inverse = np.empty_like(rows)
-      inverse[rows] = np.arange(len(rows))
-      self._looks = rmod.Looks(**{
-          f: np.concatenate([getattr(p, f) for p in parts])[inverse]
-          for f in rmod.Looks.__dataclass_fields__})
-      self._look_seeds = seeds.copy()
-
-  return _MixedLookPool
+POOL_GROUPS = 2
+"""A pool block's envs step as this many groups, pipelined (`run_pipelined`): a
+group's physics and policy run while the render workers draw another's frames."""
 
 
-def MixedLookPool(*args, **kwargs):
-  """A `dmcr_jax.env.PixelVectorEnv` whose envs each show their seed under their own
-  factors (`set_looks(seeds, varies)`), so every condition's envs step as one batch."""
-  return _mixed_pool_class()(*args, **kwargs)
+def pool_groups(agents: int, block: int, groups: int = POOL_GROUPS
+                ) -> list[tuple[np.ndarray, np.ndarray]]:
+  """How a pool block's K·B envs (agent-major) split into pipelined groups.
+
+  Each of `min(groups, B)` groups holds g = ceil(B / groups) consecutive episodes
+  of every agent, agent-major (so `policy_actions` sees K blocks of g); the last
+  group is padded with copies of its agents' first episode.
+
+  Args:
+    agents: K.
+    block: B, envs per agent in the block.
+    groups: the most groups.
+
+  Returns:
+    Per group (rows int (K·g,) into the block's envs, real bool (K·g,) False on
+    padding).
+  """
+  n = min(groups, block)
+  g = -(-block // n)
+  out = []
+  for h in range(n):
+    j = np.arange(h * g, (h + 1) * g)
+    real = j < block
+    j = np.where(real, j, j[0])
+    rows = (np.arange(agents)[:, None] * block + j[None]).reshape(-1)
+    out.append((rows, np.tile(real, agents)))
+  return out
+
+
+def run_pipelined(envs, obs, index, act, steps: int) -> list[tuple[np.ndarray, dict]]:
+  """Steps pool envs `steps` agent steps each, a group's frames drawn while the
+  next group's physics and policy run: group h's frames are collected
+  (`step_wait`), the next group's submitted (`step_submit`), then h's policy and
+  physics dispatched (`act`). Each env's episode is what `env.step` in a loop
+  gives.
+
+  Args:
+    envs: `dmcr_jax.env.PixelVectorEnv`s, just reset.
+    obs: their first observations.
+    index: their envs' episode indices (int32 arrays).
+    act: `act(env, obs, index, t)` steps `env.step_async` with the policy's actions.
+    steps: agent steps.
+
+  Returns:
+    Per env its last step's (truncated, info).
+  """
+  g, last = len(envs), [None] * len(envs)
+  for h in range(g):
+    act(envs[h], obs[h], index[h], 0)
+  envs[0].step_submit()
+  for t in range(steps):
+    final = t + 1 == steps
+    for h in range(g):
+      o, _, _, truncated, info = envs[h].step_wait()
+      nxt = (h + 1) % g
+      if nxt != h and not (final and nxt == 0):
+        envs[nxt].step_submit()
+      if final:
+        last[h] = (truncated, info)
+        continue
+      act(envs[h], o, index[h], t + 1)
+      if nxt == h:
+        envs[h].step_submit()
+  return last
 
 
 def _check_train_look(look, k: int) -> tuple:

@@ -495,6 +495,11 @@ class WorkerPool:
       pass
 
   @property
+  def busy(self) -> bool:
+    """Whether a `submit` awaits its `wait`."""
+    return self._pending is not None
+
+  @property
   def output(self) -> np.ndarray | None:
     """The output array of the current call (None once closed)."""
     return self._outputs[self._cur] if self._outputs else None

@@ -249,7 +249,7 @@ class RenderPool(OwnsWorkerPool):
   def render(self, qpos, looks: VisualParams | rmod.Looks,
              model_variables: Mapping[str, Any] | None = None, *,
              restart=None, copy_out: bool = True) -> np.ndarray:
-    """Renders N envs.
+    """Renders N envs: `submit` with these arguments, then `collect(copy_out)`.
 
     Args:
       qpos: (N, nq) generalised positions (dm_control's layout).
@@ -265,6 +265,20 @@ class RenderPool(OwnsWorkerPool):
     Returns:
       uint8 array (N, height, width, 3 · frame_stack).
     """
+    self.submit(qpos, looks, model_variables, restart=restart)
+    return self.collect(copy_out)
+
+  @property
+  def busy(self) -> bool:
+    """Whether a `submit` awaits its `collect`."""
+    return self._pool.busy
+
+  def submit(self, qpos, looks: VisualParams | rmod.Looks,
+             model_variables: Mapping[str, Any] | None = None, *, restart=None) -> None:
+    """Hands N envs' frames to the workers and returns without waiting for them
+    (arguments as for `render`); `collect` waits. One call may be in flight."""
+    if self._pool.busy:
+      raise RuntimeError("submit() called twice: call collect() first")
     qpos = np.asarray(qpos)
     if qpos.ndim != 2 or qpos.shape[1] != self.nq:
       raise ValueError(f"qpos must have shape (N, {self.nq}), got {qpos.shape}")
@@ -292,6 +306,11 @@ class RenderPool(OwnsWorkerPool):
     if self.frame_stack > 1:
       shm["restart"][:n] = True if restart is None else np.broadcast_to(
           np.asarray(restart, bool), (n,))
-    out = self._pool.run(n)
+    self._pool.submit(n)
+
+  def collect(self, copy_out: bool = True) -> np.ndarray:
+    """Waits for the frames `submit` handed out: uint8 (N, height, width,
+    3 · frame_stack), the same pixels `render` returns (`copy_out` as there)."""
+    out = self._pool.wait()
     return out.copy() if copy_out else out
 
