@@ -108,8 +108,8 @@ from dmcr_jax.visuals.factors import check_vary
 from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, EnvRanges, SeedBounds, SeedRange
 from dmcr_jax.visuals.params import check_seeds
 from dmcr_jax.visuals.pool import check_timeout, default_timeout
-from dmcr_jax.visuals.render_pool import (RenderPool, check_egl_devices, check_gl, default_gl,
-                                          default_workers)
+from dmcr_jax.visuals.render_pool import (RenderPool, RenderRows, check_egl_devices, check_gl,
+                                          default_gl, default_workers)
 
 # Action repeat of the paper's Table 4; other tasks take their domain's value and
 # domains the table does not list take 4 (PlaNet/DrQ's default).
@@ -221,7 +221,7 @@ def check_renderer_name(renderer: str) -> str:
   if renderer not in RENDERERS:
     raise ValueError(f"Unknown renderer {renderer!r}; valid: {', '.join(RENDERERS)}.")
   return renderer
-_POOL_ONLY = ("workers", "quality", "gl", "egl_devices", "copy_obs")
+_POOL_ONLY = ("workers", "quality", "gl", "egl_devices", "copy_obs", "render_pool")
 PHYSICS_DEVICES = (None, "cpu")
 """What `make(physics_device=...)` accepts: JAX's default device, or the host CPU."""
 
@@ -530,6 +530,19 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     return info
 
 
+def _check_render_pool(pool, env) -> None:
+  """ValueError unless `pool` (`make(render_pool=...)`) is a `RenderPool` or
+  `RenderRows` of the env's task and frame sizes, with room for its envs."""
+  if not isinstance(pool, (RenderPool, RenderRows)):
+    raise ValueError(f"render_pool must be a RenderPool or RenderPool.rows(...), got "
+                     f"{type(pool).__name__}")
+  want = (env.task_name, env.height, env.width, env.frame_stack)
+  got = (pool.task, pool.height, pool.width, pool.frame_stack)
+  if got != want or pool.max_batch < env.num_envs:
+    raise ValueError(f"render_pool draws (task, height, width, frame_stack) = {got} for "
+                     f"{pool.max_batch} envs; this env needs {want} for {env.num_envs}")
+
+
 def _vary_key(vary) -> str | tuple:
   """A `vary` value as a hashable key (a sequence of factors as a tuple)."""
   return vary if isinstance(vary, str) else tuple(vary)
@@ -562,7 +575,7 @@ class PixelVectorEnv(_PixelEnvBase):
                egl_devices: Sequence[int] | None = None,
                solver_iterations: int | None = None, ls_iterations: int | None = None,
                physics_device: str | None = None, physics_workers: int | None = None,
-               worker_timeout: float | None = None):
+               worker_timeout: float | None = None, render_pool=None):
     self._pool = None
     if workers is not None:
       positive_int("workers", workers)
@@ -572,10 +585,15 @@ class PixelVectorEnv(_PixelEnvBase):
                      physics_device, physics_workers, worker_timeout)
     n = self.num_envs
     self.copy_obs = bool(copy_obs)
-    self._pool = RenderPool(task, max_batch=n, height=self.height, width=self.width,
-                            camera=camera, workers=min(n, workers or default_workers()),
-                            quality=quality, gl=gl, frame_stack=self.frame_stack,
-                            egl_devices=egl_devices, timeout=self.worker_timeout)
+    self._owns_pool = render_pool is None
+    if render_pool is not None:
+      _check_render_pool(render_pool, self)
+      self._pool = render_pool
+    else:
+      self._pool = RenderPool(task, max_batch=n, height=self.height, width=self.width,
+                              camera=camera, workers=min(n, workers or default_workers()),
+                              quality=quality, gl=gl, frame_stack=self.frame_stack,
+                              egl_devices=egl_devices, timeout=self.worker_timeout)
     self._use_seeds()
     self._looks = None
     self._look_seeds = None
@@ -637,7 +655,10 @@ class PixelVectorEnv(_PixelEnvBase):
     """Stops the render and physics workers (idempotent)."""
     super().close()
     if self._pool is not None:
-      self._pool.close()
+      if self._owns_pool:
+        self._pool.close()
+      else:
+        self._drain()
       self._pool = None
 
   def __del__(self):
@@ -938,7 +959,11 @@ def make(task: str, num_envs: int = 1, visual_seeds: Any = 0,
       ("egl", the default, or "osmesa", which needs the OSMesa library; no
       environment variable needed), `egl_devices` (EGL device indices the
       workers are spread over; None: MuJoCo's default) for the `RenderPool`, `copy_obs` (default True; False
-      returns views of shared memory, see the module docstring). For "jax"
+      returns views of shared memory, see the module docstring), `render_pool` (a
+      `RenderPool` of the task and frame sizes, or a `RenderPool.rows(a, b)` view
+      of one, drawn with instead of starting workers of its own: envs that share
+      workers, one step's frames in flight at a time among them; the env does not
+      close it; its workers, quality, GL and camera are the pool's). For "jax"
       (which has no workers and no quality presets): `shadows`, `reflection`
       (default True: MuJoCo's picture), `render_chunk` (envs per render chunk,
       see `jax_env.make_env`), `render_kernel` (default False: render through

@@ -64,6 +64,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dmcr_jax._progress import progress_bar
 from dmcr_jax.checks import positive_int
 from dmcr_jax.protocol_plan import (FACTOR_CONDITIONS, PROGRESS_FILE, Plan, Segment,
                                     check_disjoint, conditions_for, held_out_seeds,
@@ -428,7 +429,8 @@ class Protocol:
     Args:
       params: the policy's params (leading axis K when `agents` is K).
       labels: per agent its name in tables (default "agent k").
-      progress: True: a progress bar; False: a line per block on stderr; None: silent.
+      progress: True: a progress bar on a terminal (a line per block when stderr
+        is not one); False: a line per block on stderr; None: silent.
       progress_file: keep finished blocks there (npz) and resume from it: a pass
         interrupted and called again with the same protocol, params and
         `progress_key` runs only the blocks still missing (the file is removed
@@ -460,10 +462,8 @@ class Protocol:
     if done and progress is not None:
       print(f"evaluate: resuming from {progress_file}: {len(done)} of {self.num_blocks} "
             "blocks already done", file=sys.stderr, flush=True)
-    bar = None
-    if progress:
-      from tqdm.auto import tqdm
-      bar = tqdm(total=self.num_blocks, initial=len(done), desc="evaluate", unit="block")
+    bar = progress_bar(progress, total=self.num_blocks, initial=len(done), desc="evaluate",
+                       unit="block")
     t_start = time.perf_counter()
     compile_s = None
     runner = self._ray_runner if self.renderer == "jax" else self._pool_runner
@@ -484,7 +484,7 @@ class Protocol:
                           earlier + time.perf_counter() - t_start)
           if bar is not None:
             bar.update(1)
-          elif progress is False:
+          elif progress is not None:
             print(f"evaluate: block {b + 1}/{self.num_blocks} done, {wall:.0f} s",
                   file=sys.stderr, flush=True)
     finally:
@@ -536,17 +536,26 @@ class Protocol:
   @contextlib.contextmanager
   def _pool_runner(self, params, key):
     """A context giving `run_block(inputs) -> returns (K·B,)` with the render pool:
-    the block's envs as `pool_groups` pipelined groups, one pool env each (their
-    workers stop when the context ends)."""
+    the block's envs as `pool_groups` pipelined groups, one pool env each, all
+    drawn by one `RenderPool`'s workers (which stop when the context ends)."""
     from dmcr_jax.env import make
+    from dmcr_jax.visuals.render_pool import RenderPool, default_workers
     kw, k = self.env_kwargs, self.agents or 1
     groups = pool_groups(k, self.block)
+    size = len(groups[0][0])
+    opts = dict(kw["render"])
+    workers = min(size, opts.pop("workers", None) or default_workers())
+    (h, w), stack_ = kw["image_size"], kw["frame_stack"]
     with contextlib.ExitStack() as stack:
+      pool = stack.enter_context(RenderPool(self.task, max_batch=size * len(groups),
+                                            height=h, width=w, workers=workers,
+                                            frame_stack=stack_, **opts))
       envs = [stack.enter_context(make(
-          self.task, renderer="pool", num_envs=len(rows), frame_skip=kw["frame_skip"],
-          frame_stack=kw["frame_stack"], image_size=kw["image_size"],
-          seed=self.config["seed"], copy_obs=False, **kw["render"]))
-          for rows, _ in groups]
+          self.task, renderer="pool", num_envs=size, frame_skip=kw["frame_skip"],
+          frame_stack=stack_, image_size=(h, w), camera=opts.get("camera", 0),
+          seed=self.config["seed"], copy_obs=False,
+          render_pool=pool.rows(g * size, (g + 1) * size)))
+          for g in range(len(groups))]
       low = np.asarray(envs[0].single_action_space.low, np.float32)
       high = np.asarray(envs[0].single_action_space.high, np.float32)
 
