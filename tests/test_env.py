@@ -235,7 +235,8 @@ def test_bad_input_is_rejected_and_the_env_keeps_working(env):
     (dict(vary=""), "vary is empty"),
     (dict(vary="target,floor"), "target do\\(es\\) not apply to pendulum"),
     (dict(workers=0), "workers must be a positive int"),
-    (dict(seed=2**70), r"seed must be an int in \[0, 2\*\*32\)"),    (dict(render_pool="mine"), "render_pool must be a RenderPool"),
+    (dict(seed=2**70), r"seed must be an int in \[0, 2\*\*32\)"),
+    (dict(render_pool="mine"), "render_pool must be a RenderPool"),
 ])
 def test_make_rejects_bad_arguments(kwargs, match):
   with pytest.raises((ValueError, TypeError), match=match):

@@ -532,9 +532,10 @@ class WorkerPool:
       raise RuntimeError("the pool is closed")
     if self._pending is not None:
       raise RuntimeError("submit() called twice: call wait() first")
-    if not (1 <= batch and 0 <= start and start + batch <= self.max_batch):
-      raise ValueError(f"rows [start, start + batch) must lie in [0, {self.max_batch}], "
-                       f"got [{start}, {start + batch})")
+    if not 0 <= start < self.max_batch:
+      raise ValueError(f"start must be in [0, {self.max_batch}), got {start}")
+    if not 1 <= batch <= self.max_batch - start:
+      raise ValueError(f"batch must be in [1, {self.max_batch - start}], got {batch}")
     self._call_id += 1
     self._cur = 0 if len(self._outputs) == 1 else 1 - int(self._latest[start])
     self._latest[start:start + batch] = self._cur
