@@ -6,7 +6,8 @@ runs physics, the JAX ray caster (`visuals.jax_render`: close to MuJoCo's pixels
 not equal) and the frame stacks as one jitted call on the device
 (`dmcr_jax.jax_env`, whose pure functions a training loop can scan). Both share
 the arguments, spaces, visual seeds, auto-reset, observations and info described
-below (`_PixelEnvBase`); `workers`, `quality`, `gl`, `egl_devices` and `copy_obs` are the pool's,
+below (`_PixelEnvBase`); `workers`, `quality`, `gl`, `egl_devices`, `copy_obs` and
+`render_pool` are the pool's,
 `shadows`, `reflection`, `render_chunk`, `render_kernel` and `obs_on_device` the
 JAX renderer's,
 and either refuses the other's. With "jax" a look is made on the device from its

@@ -538,21 +538,23 @@ class Protocol:
     """A context giving `run_block(inputs) -> returns (K·B,)` with the render pool:
     the block's envs as `pool_groups` pipelined groups, one pool env each, all
     drawn by one `RenderPool`'s workers (which stop when the context ends)."""
-    from dmcr_jax.env import make
+    from dmcr_jax import models
+    from dmcr_jax.env import check_camera, make
     from dmcr_jax.visuals.render_pool import RenderPool, default_workers
     kw, k = self.env_kwargs, self.agents or 1
     groups = pool_groups(k, self.block)
     size = len(groups[0][0])
     opts = dict(kw["render"])
+    check_camera(models.load(self.task).mj_model, opts.get("camera", 0), self.task)
     workers = min(size, opts.pop("workers", None) or default_workers())
-    (h, w), stack_ = kw["image_size"], kw["frame_stack"]
+    (h, w), frame_stack = kw["image_size"], kw["frame_stack"]
     with contextlib.ExitStack() as stack:
       pool = stack.enter_context(RenderPool(self.task, max_batch=size * len(groups),
                                             height=h, width=w, workers=workers,
-                                            frame_stack=stack_, **opts))
+                                            frame_stack=frame_stack, **opts))
       envs = [stack.enter_context(make(
           self.task, renderer="pool", num_envs=size, frame_skip=kw["frame_skip"],
-          frame_stack=stack_, image_size=(h, w), camera=opts.get("camera", 0),
+          frame_stack=frame_stack, image_size=(h, w), camera=opts.get("camera", 0),
           seed=self.config["seed"], copy_obs=False,
           render_pool=pool.rows(g * size, (g + 1) * size)))
           for g in range(len(groups))]
@@ -633,7 +635,7 @@ def pool_groups(agents: int, block: int, groups: int = POOL_GROUPS
 
   Each of `min(groups, B)` groups holds g = ceil(B / groups) consecutive episodes
   of every agent, agent-major (so `policy_actions` sees K blocks of g); the last
-  group is padded with copies of its agents' first episode.
+  group is padded, per agent, with copies of its own first episode.
 
   Args:
     agents: K.
@@ -657,11 +659,11 @@ def pool_groups(agents: int, block: int, groups: int = POOL_GROUPS
 
 
 def run_pipelined(envs, obs, index, act, steps: int) -> list[tuple[np.ndarray, dict]]:
-  """Steps pool envs `steps` agent steps each, a group's frames drawn while the
-  next group's physics and policy run: group h's frames are collected
-  (`step_wait`), the next group's submitted (`step_submit`), then h's policy and
-  physics dispatched (`act`). Each env's episode is what `env.step` in a loop
-  gives.
+  """Steps pool envs `steps` agent steps each, round robin, so that while the
+  workers draw one env's frames another env's policy and physics run: env h's
+  frames are collected (`step_wait`), env h+1's submitted (`step_submit`), then
+  h's policy and physics dispatched (`act`). Each env's episode is what
+  `env.step` in a loop gives.
 
   Args:
     envs: `dmcr_jax.env.PixelVectorEnv`s, just reset.
