@@ -12,8 +12,10 @@ sizes, evaluated with `dmcr-evaluate`'s greedy policy):
   envs of one block: `jax_env.PixelEnv.step` with zero actions in one jitted
   `lax.scan` over an episode, no policy), compile and run apart, and the ratio;
 - pool: the render pool's exact frames/s at the protocol's batch size
-  (`RenderPool.render` of fixed states, `dmcr_jax.benchmarks.render.bench_pool`)
-  and the ratio of the protocol's frames/s (one frame per agent step) to it.
+  (`RenderPool.render` of fixed states, `dmcr_jax.benchmarks.render.bench_pool`,
+  the block's envs in one call) and the ratio of the protocol's frames/s (one
+  frame per agent step) to it; the protocol draws the block with as many workers,
+  as `pool_groups` pipelined groups ("groups" in its row).
 
     python -m dmcr_jax.benchmarks.evaluate --task walker-walk --agents 1,4 \\
         --out benchmarks/results/evaluate_h200.jsonl
@@ -95,6 +97,7 @@ def bench_protocol(task: str, renderer: str, k: int, args) -> dict:
               visual_seeds=args.visual_seeds, dynamics_seeds=args.dynamics_seeds,
               train_episodes=args.train_episodes, image_size=args.image_size,
               episodes_per_agent=proto.plan.episodes, block_envs=proto.block_envs,
+              groups=len(protocol.pool_groups(k, proto.block)) if renderer == "pool" else None,
               blocks=proto.num_blocks, episode_length=proto.episode_length,
               action_repeat=proto.env_kwargs["frame_skip"], first_pass_s=first_s,
               compile_s=max(first_s - run_s, 0.0), run_s=run_s, agent_steps=steps,

@@ -6,7 +6,8 @@ runs physics, the JAX ray caster (`visuals.jax_render`: close to MuJoCo's pixels
 not equal) and the frame stacks as one jitted call on the device
 (`dmcr_jax.jax_env`, whose pure functions a training loop can scan). Both share
 the arguments, spaces, visual seeds, auto-reset, observations and info described
-below (`_PixelEnvBase`); `workers`, `quality`, `gl`, `egl_devices` and `copy_obs` are the pool's,
+below (`_PixelEnvBase`); `workers`, `quality`, `gl`, `egl_devices`, `copy_obs` and
+`render_pool` are the pool's,
 `shadows`, `reflection`, `render_chunk`, `render_kernel` and `obs_on_device` the
 JAX renderer's,
 and either refuses the other's. With "jax" a look is made on the device from its
@@ -35,6 +36,10 @@ waiting for it) followed by `step_wait` (waits for the physics, renders,
 returns gymnasium's step tuple), as in gymnasium's `AsyncVectorEnv`: a caller can
 dispatch its own device work between the two (a training loop dispatches its
 gradient updates there), so that work and the env step run at the same time.
+The pool env splits `step_wait` once more: `step_submit` waits for the physics
+and hands the frames to the render workers, `step_wait` then waits for them, so
+the caller can work while the workers draw (`dmcr_jax.protocol` steps two envs'
+physics and policy so, each while the other's frames are drawn).
 
 Physics device (`physics_device=`): None runs the physics on JAX's default
 device; "cpu" on the host's CPU (XLA:CPU), where a small batch (a few dozen envs)
@@ -113,8 +118,8 @@ from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, EnvRanges, SeedBoun
 from dmcr_jax.visuals.moving import check_moving, look_at
 from dmcr_jax.visuals.params import check_seeds
 from dmcr_jax.visuals.pool import check_timeout, default_timeout
-from dmcr_jax.visuals.render_pool import (RenderPool, check_egl_devices, check_gl, default_gl,
-                                          default_workers)
+from dmcr_jax.visuals.render_pool import (RenderPool, RenderRows, check_egl_devices, check_gl,
+                                          default_gl, default_workers)
 
 # Action repeat of the paper's Table 4; other tasks take their domain's value and
 # domains the table does not list take 4 (PlaNet/DrQ's default).
@@ -226,7 +231,7 @@ def check_renderer_name(renderer: str) -> str:
   if renderer not in RENDERERS:
     raise ValueError(f"Unknown renderer {renderer!r}; valid: {', '.join(RENDERERS)}.")
   return renderer
-_POOL_ONLY = ("workers", "quality", "gl", "egl_devices", "copy_obs")
+_POOL_ONLY = ("workers", "quality", "gl", "egl_devices", "copy_obs", "render_pool")
 PHYSICS_DEVICES = (None, "cpu")
 """What `make(physics_device=...)` accepts: JAX's default device, or the host CPU."""
 
@@ -452,13 +457,18 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     self._check_open()
     if self._pending is None:
       raise RuntimeError("step_wait() without a pending step_async()")
-    (t0, resetting, stepped), self._pending = self._pending, None
-    if isinstance(stepped, PendingStep):  # physics workers
-      stepped = stepped.result()
-    obs, host = self._finish_step(t0, resetting, *stepped)
+    pending, self._pending = self._pending, None
+    obs, host = self._complete(*pending)
     self.timed_steps += 1
     terminated = np.zeros(self.num_envs, bool)
     return obs, host["reward"], terminated, host["truncated"], self._info(host)
+
+  def _complete(self, t0, resetting, stepped):
+    """(obs, host fields) of the pending step: waits for its physics, then
+    `_finish_step`."""
+    if isinstance(stepped, PendingStep):  # physics workers
+      stepped = stepped.result()
+    return self._finish_step(t0, resetting, *stepped)
 
   def render(self) -> np.ndarray | None:
     """The latest frame of every env, uint8 (N, H, W, 3) (None before reset)."""
@@ -533,6 +543,32 @@ class _PixelEnvBase(gymnasium.vector.VectorEnv):
     return info
 
 
+def _check_render_pool(pool, env) -> None:
+  """ValueError unless `pool` (`make(render_pool=...)`) is a `RenderPool` or
+  `RenderRows` of the env's task and frame sizes, with room for its envs."""
+  if not isinstance(pool, (RenderPool, RenderRows)):
+    raise ValueError(f"render_pool must be a RenderPool or RenderPool.rows(...), got "
+                     f"{type(pool).__name__}")
+  want = (env.task_name, env.height, env.width, env.frame_stack)
+  got = (pool.task, pool.height, pool.width, pool.frame_stack)
+  if got != want or pool.max_batch < env.num_envs:
+    raise ValueError(f"render_pool draws (task, height, width, frame_stack) = {got} for "
+                     f"{pool.max_batch} envs; this env needs {want} for {env.num_envs}")
+
+
+def _vary_key(vary) -> str | tuple:
+  """A `vary` value as a hashable key (a sequence of factors as a tuple)."""
+  return vary if isinstance(vary, str) else tuple(vary)
+
+
+class _Frames:
+  """A step whose frames `PixelVectorEnv.step_submit` handed to the workers:
+  its host fields (`host`)."""
+
+  def __init__(self, host: dict):
+    self.host = host
+
+
 class PixelVectorEnv(_PixelEnvBase):
   """N DMCR envs with pixel observations from the CPU render pool (a gymnasium
   `VectorEnv`).
@@ -552,7 +588,8 @@ class PixelVectorEnv(_PixelEnvBase):
                egl_devices: Sequence[int] | None = None,
                solver_iterations: int | None = None, ls_iterations: int | None = None,
                physics_device: str | None = None, physics_workers: int | None = None,
-               worker_timeout: float | None = None, moving=None, intensity: float = 0.0):
+               worker_timeout: float | None = None, moving=None, intensity: float = 0.0,
+               render_pool=None):
     self._pool = None
     if workers is not None:
       positive_int("workers", workers)
@@ -562,36 +599,81 @@ class PixelVectorEnv(_PixelEnvBase):
                      physics_device, physics_workers, worker_timeout, moving, intensity)
     n = self.num_envs
     self.copy_obs = bool(copy_obs)
-    self._pool = RenderPool(task, max_batch=n, height=self.height, width=self.width,
-                            camera=camera, workers=min(n, workers or default_workers()),
-                            quality=quality, gl=gl, frame_stack=self.frame_stack,
-                            egl_devices=egl_devices, timeout=self.worker_timeout)
+    self._owns_pool = render_pool is None
+    if render_pool is not None:
+      _check_render_pool(render_pool, self)
+      self._pool = render_pool
+    else:
+      self._pool = RenderPool(task, max_batch=n, height=self.height, width=self.width,
+                              camera=camera, workers=min(n, workers or default_workers()),
+                              quality=quality, gl=gl, frame_stack=self.frame_stack,
+                              egl_devices=egl_devices, timeout=self.worker_timeout)
     self._use_seeds()
     self._looks = None
     self._look_seeds = None
     self._static_params = None      # (seeds, vary, VisualParams) of moving looks
+    self._env_varies = None   # per-env factors (`set_looks`), else `vary` for all
     self._needs_reset = np.zeros(n, bool)
+
+  def step_submit(self) -> None:
+    """Waits for the physics `step_async` dispatched and hands the step's frames
+    to the render workers without waiting for them; `step_wait` then waits for
+    the frames and returns what `step` returns (the same pixels). In between,
+    the caller can work while the workers draw (e.g. step another env's physics
+    and policy: `dmcr_jax.protocol` pipelines two envs so).
+
+    Raises:
+      RuntimeError: no `step_async` pending (or its frames already submitted),
+        or after `close`.
+    """
+    self._check_open()
+    if self._pending is None or isinstance(self._pending[2], _Frames):
+      raise RuntimeError("step_submit() without a pending step_async()")
+    (t0, resetting, stepped), self._pending = self._pending, None
+    if isinstance(stepped, PendingStep):  # physics workers
+      stepped = stepped.result()
+    self._pending = (t0, resetting, self._submit_frames(t0, *stepped))
 
   def _finish_step(self, t0, resetting, es, reward, truncated):
     """Waits for the physics, fetches what rendering needs, renders and stacks."""
+    return self._collect_frames(self._submit_frames(t0, es, reward, truncated))
+
+  def _complete(self, t0, resetting, stepped):
+    if isinstance(stepped, _Frames):  # submitted by step_submit
+      return self._collect_frames(stepped)
+    return super()._complete(t0, resetting, stepped)
+
+  def _submit_frames(self, t0, es, reward, truncated) -> _Frames:
+    """Waits for the physics, fetches what rendering needs and submits the frames."""
     self._es = jax.block_until_ready(es)
     t1 = time.perf_counter()
     host = self._fetch(self._es, reward, truncated)
     t2 = time.perf_counter()
-    stacked = self._render(host, restart=self._needs_reset)
-    t3 = time.perf_counter()
+    self._render(host, restart=self._needs_reset, wait=False)
+    self.timings["physics"] += t1 - t0
+    self.timings["transfer"] += t2 - t1
+    self.timings["render"] += time.perf_counter() - t2
+    return _Frames(host)
+
+  def _collect_frames(self, frames: _Frames):
+    """Waits for the submitted frames and stacks; (obs, host fields)."""
+    t0 = time.perf_counter()
+    stacked = self._pool.collect(copy_out=False)
+    t1 = time.perf_counter()
     obs = self._obs = self._output(stacked)
-    self._needs_reset = host["truncated"]
-    t4 = time.perf_counter()
-    for part, dt in zip(TIMING_PARTS, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
-      self.timings[part] += dt
-    return obs, host
+    self._needs_reset = frames.host["truncated"]
+    self.timings["render"] += t1 - t0
+    self.timings["copy"] += time.perf_counter() - t1
+    return obs, frames.host
 
   def close(self, **kwargs) -> None:
     """Stops the render and physics workers (idempotent)."""
     super().close()
     if self._pool is not None:
-      self._pool.close()
+      if self._owns_pool:
+        self._pool.close()
+      else:
+        self._drain()
       self._pool = None
 
   def __del__(self):
@@ -602,7 +684,8 @@ class PixelVectorEnv(_PixelEnvBase):
 
   def set_visuals(self, visual_seeds: Any, vary: str | Sequence[str] | None = None) -> None:
     super().set_visuals(visual_seeds, vary)
-    self._looks = self._look_seeds = None
+    self._drain()
+    self._looks = self._look_seeds = self._env_varies = None
 
   set_visuals.__doc__ = _PixelEnvBase.set_visuals.__doc__
 
@@ -611,6 +694,7 @@ class PixelVectorEnv(_PixelEnvBase):
 
   def _start_from(self, es: physics_env.EnvState):
     """Makes `es` the current state and renders fresh frame stacks from it."""
+    self._drain()
     self._es = es
     host = self._fetch(es, None, None)
     self._obs = self._output(self._render(host, restart=None))
@@ -620,21 +704,74 @@ class PixelVectorEnv(_PixelEnvBase):
   def _use_seeds(self) -> None:
     self._use_physics()
 
+  def _drain(self) -> None:
+    """Waits for (and drops) frames `step_submit` handed out and no `step_wait`
+    collected (a reset or new looks end that step)."""
+    if self._pool is not None and self._pool.busy:
+      self._pool.collect(copy_out=False)
+
   def _fetch(self, es: physics_env.EnvState, reward, truncated) -> dict:
     out = self._host_fields(es, reward, truncated)
     out["qpos"] = es.task.data.qpos
     out["variables"] = {k: es.task.info[k] for k in self.task.model_variable_ids}
     return jax.device_get(out)
 
-  def _update_looks(self, seeds: np.ndarray) -> None:
+  def set_looks(self, visual_seeds, varies: Sequence) -> None:
+    """Fixed looks with factors of their own: env i shows visual seed
+    `visual_seeds[i]` under the factors `varies[i]` (each as `make`'s `vary`), so
+    envs of several visual conditions step as one batch (the pool env only).
+    `set_visuals` gives every env one `vary` again. The running episodes end:
+    call `reset` next.
+
+    Args:
+      visual_seeds: N ints ≥ 0.
+      varies: N values of `vary` ("none", "floor", "all", …).
+
+    Raises:
+      ValueError: not N seeds and N varies, a bad seed or factor (the env is
+        left unchanged).
+    """
+    varies = list(varies)
+    if self.moving and self.intensity > 0:
+      raise ValueError(f"set_looks sets static looks; this env's looks move "
+                       f"(moving={self.moving!r}): make it with moving=None")
+    if (np.ndim(visual_seeds) != 1 or len(varies) != self.num_envs
+        or any(isinstance(v, SeedRange) for v in visual_seeds)):
+      raise ValueError(f"set_looks takes {self.num_envs} visual seeds and {self.num_envs} "
+                       f"varies (one each per env), got {np.shape(visual_seeds)} seeds and "
+                       f"{len(varies)} varies")
+    for v in {_vary_key(v): v for v in varies}.values():
+      check_vary(self.domain, v)
+    self.set_visuals(visual_seeds)
+    self._env_varies = varies
+
+  def _looks_of(self, seeds: np.ndarray, rows: np.ndarray) -> rmod.Looks:
+    """The prepared looks of envs `rows` showing `seeds`, each under its factors."""
     rm = self._pool.rm
+    if self._env_varies is None:
+      return rmod.prepare(rm, rm.sample(seeds, vary=self.vary))
+    varies = [self._env_varies[i] for i in rows]
+    keys = [_vary_key(v) for v in varies]
+    out = None
+    for key in dict.fromkeys(keys):
+      sel = np.flatnonzero([k == key for k in keys])
+      part = rmod.prepare(rm, rm.sample(seeds[sel], vary=varies[sel[0]]))
+      if out is None:
+        out = rmod.Looks(**{f: np.empty((len(rows),) + getattr(part, f).shape[1:],
+                                        getattr(part, f).dtype)
+                            for f in rmod.Looks.__dataclass_fields__})
+      for f in rmod.Looks.__dataclass_fields__:
+        getattr(out, f)[sel] = getattr(part, f)
+    return out
+
+  def _update_looks(self, seeds: np.ndarray) -> None:
     if self._looks is None:
       changed = np.arange(len(seeds))
     else:
       changed = np.flatnonzero(seeds != self._look_seeds)
       if not len(changed):
         return
-    new = rmod.prepare(rm, rm.sample(seeds[changed], vary=self.vary))
+    new = self._looks_of(seeds[changed], changed)
     if self._looks is None:
       self._looks = new
     else:
@@ -657,7 +794,9 @@ class PixelVectorEnv(_PixelEnvBase):
     return look_at(cached[2], np.asarray(steps, np.int32), self.moving, self.intensity,
                    num_backgrounds=self._pool.rm.bank.num_backgrounds)
 
-  def _render(self, host: dict, restart) -> np.ndarray:
+  def _render(self, host: dict, restart, wait: bool = True) -> np.ndarray | None:
+    """The stacked frames of `host`'s envs (a view of shared memory); with
+    `wait=False` only submitted (`RenderPool.collect` waits)."""
     if self._pool is None:
       raise RuntimeError("the env is closed")
     if self.moving and self.intensity > 0:   # this step's looks, shipped with the call
@@ -666,8 +805,8 @@ class PixelVectorEnv(_PixelEnvBase):
     else:
       self._update_looks(np.asarray(host["visual_seed"]))
       looks = self._looks
-    return self._pool.render(host["qpos"], looks,
-                             host["variables"], restart=restart, copy_out=False)
+    self._pool.submit(host["qpos"], looks, host["variables"], restart=restart)
+    return self._pool.collect(copy_out=False) if wait else None
 
 
 class JaxPixelVectorEnv(_PixelEnvBase):
@@ -864,7 +1003,11 @@ def make(task: str, num_envs: int = 1, visual_seeds: Any = 0,
       ("egl", the default, or "osmesa", which needs the OSMesa library; no
       environment variable needed), `egl_devices` (EGL device indices the
       workers are spread over; None: MuJoCo's default) for the `RenderPool`, `copy_obs` (default True; False
-      returns views of shared memory, see the module docstring). For "jax"
+      returns views of shared memory, see the module docstring), `render_pool` (a
+      `RenderPool` of the task and frame sizes, or a `RenderPool.rows(a, b)` view
+      of one, drawn with instead of starting workers of its own: envs that share
+      workers, one step's frames in flight at a time among them; the env does not
+      close it; its workers, quality, GL and camera are the pool's). For "jax"
       (which has no workers and no quality presets): `shadows`, `reflection`
       (default True: MuJoCo's picture), `render_chunk` (envs per render chunk,
       see `jax_env.make_env`), `render_kernel` (default False: render through

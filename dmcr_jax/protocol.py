@@ -26,8 +26,10 @@ of one shape, so one compilation serves every block): per block one jitted call
 makes the looks from the per-env seeds and factor masks, resets the physics from
 the per-env seeds and `lax.scan`s the episode with the policy inside, with no host
 round trip per step. "pool" renders MuJoCo's own pixels in the CPU render pool
-(`dmcr_jax.make`), every condition's envs in one batch, the same jitted policy
-called from the host loop. Returns are those of `dmcr_jax.make`'s env stepped by
+(`dmcr_jax.make`), every condition's envs in one block (`PixelVectorEnv.set_looks`),
+the same jitted policy called from the host loop; a block steps as two pipelined
+groups of envs (`pool_groups`), a group's physics and policy running while the
+workers draw the other's frames. Returns are those of `dmcr_jax.make`'s env stepped by
 the same policy (`tests/test_protocol.py`). The policy is vmapped over envs: an
 env's action depends on its own observation and key alone, so the returns do not
 depend on `max_envs` or on the number of agents (up to the float rounding of a
@@ -62,6 +64,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dmcr_jax._progress import progress_bar
 from dmcr_jax.checks import positive_int
 from dmcr_jax.protocol_plan import (FACTOR_CONDITIONS, PROGRESS_FILE, Plan, Segment,
                                     check_disjoint, conditions_for, held_out_seeds,
@@ -426,7 +429,8 @@ class Protocol:
     Args:
       params: the policy's params (leading axis K when `agents` is K).
       labels: per agent its name in tables (default "agent k").
-      progress: True: a progress bar; False: a line per block on stderr; None: silent.
+      progress: True: a progress bar on a terminal (a line per block when stderr
+        is not one); False: a line per block on stderr; None: silent.
       progress_file: keep finished blocks there (npz) and resume from it: a pass
         interrupted and called again with the same protocol, params and
         `progress_key` runs only the blocks still missing (the file is removed
@@ -458,10 +462,8 @@ class Protocol:
     if done and progress is not None:
       print(f"evaluate: resuming from {progress_file}: {len(done)} of {self.num_blocks} "
             "blocks already done", file=sys.stderr, flush=True)
-    bar = None
-    if progress:
-      from tqdm.auto import tqdm
-      bar = tqdm(total=self.num_blocks, initial=len(done), desc="evaluate", unit="block")
+    bar = progress_bar(progress, total=self.num_blocks, initial=len(done), desc="evaluate",
+                       unit="block")
     t_start = time.perf_counter()
     compile_s = None
     runner = self._ray_runner if self.renderer == "jax" else self._pool_runner
@@ -482,7 +484,7 @@ class Protocol:
                           earlier + time.perf_counter() - t_start)
           if bar is not None:
             bar.update(1)
-          elif progress is False:
+          elif progress is not None:
             print(f"evaluate: block {b + 1}/{self.num_blocks} done, {wall:.0f} s",
                   file=sys.stderr, flush=True)
     finally:
@@ -533,29 +535,53 @@ class Protocol:
 
   @contextlib.contextmanager
   def _pool_runner(self, params, key):
-    """A context giving `run_block(inputs) -> returns (K·B,)` with the render pool (its
-    workers stop when the context ends)."""
-    kw = self.env_kwargs
-    env = MixedLookPool(self.task, num_envs=self.block_envs, frame_skip=kw["frame_skip"],
-                        frame_stack=kw["frame_stack"], image_size=kw["image_size"],
-                        seed=self.config["seed"], **kw["render"])
-    low = np.asarray(env.single_action_space.low, np.float32)
-    high = np.asarray(env.single_action_space.high, np.float32)
+    """A context giving `run_block(inputs) -> returns (K·B,)` with the render pool:
+    the block's envs as `pool_groups` pipelined groups, one pool env each, all
+    drawn by one `RenderPool`'s workers (which stop when the context ends)."""
+    from dmcr_jax import models
+    from dmcr_jax.env import check_camera, make
+    from dmcr_jax.visuals.render_pool import RenderPool, default_workers
+    kw, k = self.env_kwargs, self.agents or 1
+    groups = pool_groups(k, self.block)
+    size = len(groups[0][0])
+    opts = dict(kw["render"])
+    check_camera(models.load(self.task).mj_model, opts.get("camera", 0), self.task)
+    workers = min(size, opts.pop("workers", None) or default_workers())
+    (h, w), frame_stack = kw["image_size"], kw["frame_stack"]
+    with contextlib.ExitStack() as stack:
+      pool = stack.enter_context(RenderPool(self.task, max_batch=size * len(groups),
+                                            height=h, width=w, workers=workers,
+                                            frame_stack=frame_stack, **opts))
+      envs = [stack.enter_context(make(
+          self.task, renderer="pool", num_envs=size, frame_skip=kw["frame_skip"],
+          frame_stack=frame_stack, image_size=(h, w), camera=opts.get("camera", 0),
+          seed=self.config["seed"], copy_obs=False,
+          render_pool=pool.rows(g * size, (g + 1) * size)))
+          for g in range(len(groups))]
+      low = np.asarray(envs[0].single_action_space.low, np.float32)
+      high = np.asarray(envs[0].single_action_space.high, np.float32)
 
-    def run_block(inputs):
-      env.set_looks(inputs["seeds"], [self.plan.varies[i] for i in inputs["vary_index"]])
-      obs, _ = env.reset(seed=inputs["resets"])
-      index = jnp.asarray(inputs["index"])
-      for t in range(env.episode_length):
+      def act(env, obs, index, t):
         actions, worst = _pool_act(params, obs, index, np.int32(t), key, low, high,
                                    policy=self.policy, agents=self.agents)
         check_actions(np.asarray(worst))
-        obs, _, _, truncated, info = env.step(np.asarray(actions))
-      if not truncated.all():
-        raise RuntimeError("episodes did not all end together; the env's episode length "
-                           "is off")
-      return np.asarray(info["episode_return"], np.float64)
-    with env:
+        env.step_async(np.asarray(actions))
+
+      def run_block(inputs):
+        varies = [self.plan.varies[i] for i in inputs["vary_index"]]
+        index, obs = [], []
+        for env, (rows, _) in zip(envs, groups):
+          env.set_looks(inputs["seeds"][rows], [varies[i] for i in rows])
+          obs.append(env.reset(seed=inputs["resets"][rows])[0])
+          index.append(jnp.asarray(inputs["index"][rows]))
+        last = run_pipelined(envs, obs, index, act, self.episode_length)
+        out = np.empty(len(inputs["index"]), np.float64)
+        for (truncated, info), (rows, real) in zip(last, groups):
+          if not truncated.all():
+            raise RuntimeError("episodes did not all end together; the env's episode "
+                               "length is off")
+          out[rows[real]] = np.asarray(info["episode_return"], np.float64)[real]
+        return out
       yield run_block
 
 
@@ -598,44 +624,75 @@ def _pixel_env(task: str, num_envs: int, frame_skip: int, frame_stack: int, heig
       render_chunk=chunk, render_kernel=JR.use_kernel(opts.get("render_kernel", False)))
 
 
-@functools.cache
-def _mixed_pool_class():
-  from dmcr_jax.env import PixelVectorEnv
-  from dmcr_jax.visuals import render_model as rmod
-
-  class _MixedLookPool(PixelVectorEnv):
-    """The pool env with a `vary` per env: env i shows its seed under its own
-    factors (`set_looks`); the looks are made once per `set_looks`."""
-
-    def set_looks(self, seeds: np.ndarray, varies: Sequence[str]) -> None:
-      """Fixed seeds and per-env factors; the running episodes end (reset next)."""
-      self.set_visuals(np.asarray(seeds))
-      self._varies = list(varies)
-
-    def _update_looks(self, seeds: np.ndarray) -> None:
-      if self._looks is not None and np.array_equal(seeds, self._look_seeds):
-        return
-      varies = getattr(self, "_varies", [self.vary] * len(seeds))
-      rm, parts, order = self._pool.rm, [], []
-      for v in dict.fromkeys(varies):
-        rows = np.flatnonzero(np.asarray([x == v for x in varies]))
-        parts.append(rmod.prepare(rm, rm.sample(seeds[rows], vary=v)))
-        order.append(rows)
-      rows = np.concatenate(order)
-      inverse = np.empty_like(rows)
-      inverse[rows] = np.arange(len(rows))
-      self._looks = rmod.Looks(**{
-          f: np.concatenate([getattr(p, f) for p in parts])[inverse]
-          for f in rmod.Looks.__dataclass_fields__})
-      self._look_seeds = seeds.copy()
-
-  return _MixedLookPool
+POOL_GROUPS = 2
+"""A pool block's envs step as this many groups, pipelined (`run_pipelined`): a
+group's physics and policy run while the render workers draw another's frames."""
 
 
-def MixedLookPool(*args, **kwargs):
-  """A `dmcr_jax.env.PixelVectorEnv` whose envs each show their seed under their own
-  factors (`set_looks(seeds, varies)`), so every condition's envs step as one batch."""
-  return _mixed_pool_class()(*args, **kwargs)
+def pool_groups(agents: int, block: int, groups: int = POOL_GROUPS
+                ) -> list[tuple[np.ndarray, np.ndarray]]:
+  """How a pool block's K·B envs (agent-major) split into pipelined groups.
+
+  Each of `min(groups, B)` groups holds g = ceil(B / groups) consecutive episodes
+  of every agent, agent-major (so `policy_actions` sees K blocks of g); the last
+  group is padded, per agent, with copies of its own first episode.
+
+  Args:
+    agents: K.
+    block: B, envs per agent in the block.
+    groups: the most groups.
+
+  Returns:
+    Per group (rows int (K·g,) into the block's envs, real bool (K·g,) False on
+    padding).
+  """
+  n = min(groups, block)
+  g = -(-block // n)
+  out = []
+  for h in range(n):
+    j = np.arange(h * g, (h + 1) * g)
+    real = j < block
+    j = np.where(real, j, j[0])
+    rows = (np.arange(agents)[:, None] * block + j[None]).reshape(-1)
+    out.append((rows, np.tile(real, agents)))
+  return out
+
+
+def run_pipelined(envs, obs, index, act, steps: int) -> list[tuple[np.ndarray, dict]]:
+  """Steps pool envs `steps` agent steps each, round robin, so that while the
+  workers draw one env's frames another env's policy and physics run: env h's
+  frames are collected (`step_wait`), env h+1's submitted (`step_submit`), then
+  h's policy and physics dispatched (`act`). Each env's episode is what
+  `env.step` in a loop gives.
+
+  Args:
+    envs: `dmcr_jax.env.PixelVectorEnv`s, just reset.
+    obs: their first observations.
+    index: their envs' episode indices (int32 arrays).
+    act: `act(env, obs, index, t)` steps `env.step_async` with the policy's actions.
+    steps: agent steps.
+
+  Returns:
+    Per env its last step's (truncated, info).
+  """
+  g, last = len(envs), [None] * len(envs)
+  for h in range(g):
+    act(envs[h], obs[h], index[h], 0)
+  envs[0].step_submit()
+  for t in range(steps):
+    final = t + 1 == steps
+    for h in range(g):
+      o, _, _, truncated, info = envs[h].step_wait()
+      nxt = (h + 1) % g
+      if nxt != h and not (final and nxt == 0):
+        envs[nxt].step_submit()
+      if final:
+        last[h] = (truncated, info)
+        continue
+      act(envs[h], o, index[h], t + 1)
+      if nxt == h:
+        envs[h].step_submit()
+  return last
 
 
 def _check_train_look(look, k: int) -> tuple:

@@ -125,7 +125,7 @@ def test_step_async_then_step_wait_is_step(env):
   # they must give exactly `step`, and be called in order.
   rng = np.random.default_rng(4)
   actions = [_actions(rng, env) for _ in range(3)]
-  env.reset(seed=5)
+  first = env.reset(seed=5)[0].copy()
   plain = [env.step(a) for a in actions]
   env.reset(seed=5)
   with pytest.raises(RuntimeError, match="without a pending"):
@@ -137,6 +137,43 @@ def test_step_async_then_step_wait_is_step(env):
     got = env.step_wait()
     for g, w in zip(got[:4], want[:4]):
       np.testing.assert_array_equal(g, w)
+  # The pool env's step_submit (frames handed out, not waited for) in between.
+  env.reset(seed=5)
+  with pytest.raises(RuntimeError, match="without a pending"):
+    env.step_submit()
+  for a, want in zip(actions, plain):
+    env.step_async(a)
+    env.step_submit()
+    with pytest.raises(RuntimeError, match="without a pending"):
+      env.step_submit()
+    got = env.step_wait()
+    for g, w in zip(got[:4], want[:4]):
+      np.testing.assert_array_equal(g, w)
+  env.step_async(actions[0])
+  env.step_submit()
+  np.testing.assert_array_equal(env.reset(seed=5)[0], first)  # the frames in flight dropped
+
+
+def test_set_looks_gives_each_env_its_own_factors(env):
+  # Every condition's envs in one batch: env i shows its seed under varies[i], as
+  # set_visuals(seeds, vary=varies[i]) shows it.
+  rng = np.random.default_rng(6)
+  actions = [_actions(rng, env) for _ in range(2)]
+  seeds, varies = [11, 12, 2**30 + 3], ["floor,light", "none", "all"]
+
+  def run():
+    return np.stack([env.reset(seed=8)[0]] + [env.step(a)[0] for a in actions])
+
+  env.set_looks(seeds, varies)
+  got = run()
+  for i, vary in enumerate(varies):
+    env.set_visuals(seeds, vary=vary)
+    np.testing.assert_array_equal(got[:, i], run()[:, i])
+  with pytest.raises(ValueError, match="3 varies"):
+    env.set_looks(seeds, varies[:2])
+  with pytest.raises(ValueError, match="wheels"):
+    env.set_looks(seeds, ["floor", "none", "wheels"])
+  env.set_visuals(SEEDS, vary="all")  # as the fixture built it
 
 
 def test_set_visuals_and_set_state_act_like_a_fresh_env(env):
@@ -199,10 +236,16 @@ def test_bad_input_is_rejected_and_the_env_keeps_working(env):
     (dict(vary="target,floor"), "target do\\(es\\) not apply to pendulum"),
     (dict(workers=0), "workers must be a positive int"),
     (dict(seed=2**70), r"seed must be an int in \[0, 2\*\*32\)"),
+    (dict(render_pool="mine"), "render_pool must be a RenderPool"),
 ])
 def test_make_rejects_bad_arguments(kwargs, match):
   with pytest.raises((ValueError, TypeError), match=match):
     dmcr_jax.make(TASK, **kwargs)
+
+
+def test_a_shared_render_pool_must_draw_the_env_s_sizes(env):
+  with pytest.raises(ValueError, match="this env needs"):
+    dmcr_jax.make(TASK, num_envs=3, image_size=16, frame_skip=SKIP, render_pool=env._pool)
 
 
 def test_make_rejects_unknown_task():

@@ -14,6 +14,7 @@ layouts.
 
 import json
 import os
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -216,6 +217,29 @@ def test_the_pool_runs_every_condition_in_one_batch_with_the_same_returns():
   for c in OPTS["conditions"]:
     np.testing.assert_allclose(got.returns[c][0], want[c], rtol=1e-6)
   assert "render quality fastest" in got.markdown()
+
+
+def test_pool_groups_split_each_agent_s_episodes_into_pipelined_halves():
+  # K = 2 agents × B = 5 episodes, agent-major: two groups of 3 episodes per agent,
+  # the second padded with its first episode; every real env in exactly one group.
+  groups = P.pool_groups(2, 5)
+  assert [rows.tolist() for rows, _ in groups] == [[0, 1, 2, 5, 6, 7], [3, 4, 3, 8, 9, 8]]
+  assert [real.tolist() for _, real in groups] == [[True] * 6, [True, True, False] * 2]
+  real_rows = np.concatenate([rows[real] for rows, real in groups])
+  assert sorted(real_rows.tolist()) == list(range(10))
+  assert [r.tolist() for r, _ in P.pool_groups(3, 1)] == [[0, 1, 2]]  # one episode each
+
+
+def test_progress_into_a_redirected_stderr_is_lines_not_a_bar(single, capsys):
+  # tqdm wrote its redraws into a redirected stderr (a log file); without a
+  # terminal, progress=True prints a line per block.
+  proto, _ = single
+  assert not sys.stderr.isatty()
+  proto(make_params(), progress=True)
+  err = capsys.readouterr().err
+  assert "\r" not in err and "block/s" not in err and "it/s" not in err
+  assert [line.split(",")[0] for line in err.splitlines()
+          if line.startswith("evaluate:")] == ["evaluate: block 1/1 done"]
 
 
 def _results(train, returns):

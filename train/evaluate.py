@@ -152,7 +152,7 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
     cfg: the protocol's sizes and options.
     out_dir: where the results go (default `<run_dir>/eval`).
     agents: indices of the agents to evaluate (default: all).
-    progress: show a progress bar (else a line per block on stderr).
+    progress: a progress bar on a terminal, else a line per block on stderr.
 
   Returns:
     The results (also in `<out_dir>/eval.json`, where an undefined E_G, NaN

@@ -32,6 +32,7 @@ import jax
 import numpy as np
 
 from dmcr_jax._files import json_safe  # noqa: F401 (re-exported)
+from dmcr_jax._progress import progress_bar
 
 PROGRESS_FRACTION = 0.02
 """`RunLog.due` reports progress at least every this fraction of a run's steps,
@@ -140,9 +141,8 @@ class RunLog:
     print(f"{cfg.task}: compiling the agents' act and update steps on the first steps "
           f"({jax.default_backend()}); this can take a minute or more on a CPU",
           file=sys.stderr, flush=True)
-    if progress and sys.stderr.isatty():
-      from tqdm.auto import tqdm
-      self._bar = tqdm(total=cfg.steps, initial=start, desc=cfg.task, unit="step")
+    self._bar = progress_bar(progress, total=cfg.steps, initial=start, desc=cfg.task,
+                             unit="step")
     from dmcr_jax.train import loggers
     self.sinks = []
     try:

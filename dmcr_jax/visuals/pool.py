@@ -376,6 +376,7 @@ class WorkerPool:
       self._outputs = [self._alloc(output) for _ in range(buffers)]
       self._out_names = [shm.name for shm in self._segments[-buffers:]]
       self._cur = 0
+      self._latest = np.ones(self.max_batch, np.int8)  # the buffer of each row's output
       for w in range(self.num_workers):
         self._start(w)
       for w in range(self.num_workers):
@@ -495,6 +496,11 @@ class WorkerPool:
       pass
 
   @property
+  def busy(self) -> bool:
+    """Whether a `submit` awaits its `wait`."""
+    return self._pending is not None
+
+  @property
   def output(self) -> np.ndarray | None:
     """The output array of the current call (None once closed)."""
     return self._outputs[self._cur] if self._outputs else None
@@ -516,21 +522,28 @@ class WorkerPool:
     self.submit(batch)
     return self.wait()
 
-  def submit(self, batch: int) -> None:
-    """Sends every worker its slice of envs [0, batch) and returns at once; `wait`
-    completes the call. `self.inputs` must not change in between."""
+  def submit(self, batch: int, start: int = 0) -> None:
+    """Sends every worker its slice of envs [start, start + batch) and returns at
+    once; `wait` completes the call. `self.inputs` must not change in between.
+    With two buffers, the call writes its rows into the buffer that does not hold
+    their previous output (its `prev`): calls over disjoint rows (envs that share
+    the workers, `start` apart) each keep their own rows' stacks."""
     if self._closed:
       raise RuntimeError("the pool is closed")
     if self._pending is not None:
       raise RuntimeError("submit() called twice: call wait() first")
-    if not 1 <= batch <= self.max_batch:
-      raise ValueError(f"batch must be in [1, {self.max_batch}], got {batch}")
+    if not 0 <= start < self.max_batch:
+      raise ValueError(f"start must be in [0, {self.max_batch}), got {start}")
+    if not 1 <= batch <= self.max_batch - start:
+      raise ValueError(f"batch must be in [1, {self.max_batch - start}], got {batch}")
     self._call_id += 1
-    self._cur = (self._call_id - 1) % len(self._outputs)
-    pending = {w: s for w, s in enumerate(self.slices(batch)) if s[1] > s[0]}
+    self._cur = 0 if len(self._outputs) == 1 else 1 - int(self._latest[start])
+    self._latest[start:start + batch] = self._cur
+    pending = {w: (a + start, b + start) for w, (a, b) in enumerate(self.slices(batch))
+               if b > a}
     for w, (a, b) in pending.items():
       self._send(w, a, b)
-    self._pending = (batch, pending)
+    self._pending = (start, batch, pending)
 
   def wait(self) -> np.ndarray:
     """Waits for the call `submit` began (replacing dead or hung workers and
@@ -541,7 +554,7 @@ class WorkerPool:
     """
     if self._pending is None:
       raise RuntimeError("wait() without a submitted call")
-    (batch, pending), self._pending = self._pending, None
+    (start, batch, pending), self._pending = self._pending, None
     tries = {w: 0 for w in pending}
     began = dict.fromkeys(pending, time.monotonic())   # the slice was (re)sent
     beat = dict(began)                                 # the worker's last sign of life
@@ -581,7 +594,7 @@ class WorkerPool:
             if v != w:
               self._drain(v)
           raise WorkerError(f"{self.kind} worker {w} raised:\n{msg[1]}")
-    return self.output[:batch]
+    return self.output[start:start + batch]
 
   def _receive(self, w: int):
     """Worker w's next message, or None if its pipe closed (it died)."""

@@ -270,7 +270,7 @@ class RenderPool(OwnsWorkerPool):
   def render(self, qpos, looks: VisualParams | rmod.Looks,
              model_variables: Mapping[str, Any] | None = None, *,
              restart=None, copy_out: bool = True) -> np.ndarray:
-    """Renders N envs.
+    """Renders N envs: `submit` with these arguments, then `collect(copy_out)`.
 
     Args:
       qpos: (N, nq) generalised positions (dm_control's layout).
@@ -286,12 +286,35 @@ class RenderPool(OwnsWorkerPool):
     Returns:
       uint8 array (N, height, width, 3 · frame_stack).
     """
+    self.submit(qpos, looks, model_variables, restart=restart)
+    return self.collect(copy_out)
+
+  @property
+  def busy(self) -> bool:
+    """Whether a `submit` awaits its `collect`."""
+    return self._pool.busy
+
+  def rows(self, start: int, stop: int) -> RenderRows:
+    """Envs [start, stop) of this pool's batch as a pool of their own
+    (`RenderRows`), drawn by this pool's workers."""
+    return RenderRows(self, start, stop)
+
+  def submit(self, qpos, looks: VisualParams | rmod.Looks,
+             model_variables: Mapping[str, Any] | None = None, *, restart=None) -> None:
+    """Hands N envs' frames to the workers and returns without waiting for them
+    (arguments as for `render`); `collect` waits. One call may be in flight."""
+    self._submit(qpos, looks, model_variables, restart, 0)
+
+  def _submit(self, qpos, looks, model_variables, restart, start: int) -> None:
+    """`submit` of envs [start, start + N) of the batch."""
+    if self._pool.busy:
+      raise RuntimeError("submit() called twice: call collect() first")
     qpos = np.asarray(qpos)
     if qpos.ndim != 2 or qpos.shape[1] != self.nq:
       raise ValueError(f"qpos must have shape (N, {self.nq}), got {qpos.shape}")
     n = qpos.shape[0]
-    if not 1 <= n <= self.max_batch:
-      raise ValueError(f"batch size must be in [1, {self.max_batch}], got {n}")
+    if not 1 <= n <= self.max_batch - start:
+      raise ValueError(f"batch size must be in [1, {self.max_batch - start}], got {n}")
     if not isinstance(looks, rmod.Looks):  # VisualParams
       if looks.domain and looks.domain != self.domain:
         raise ValueError(f"looks are for {looks.domain!r}, the pool renders {self.domain!r}")
@@ -301,18 +324,75 @@ class RenderPool(OwnsWorkerPool):
     missing = [k for k in self._var_specs if model_variables is None or k not in model_variables]
     if missing:
       raise ValueError(f"{self.task} needs model variables {missing} (from State.info)")
-    shm = self._pool.inputs
-    shm["qpos"][:n] = qpos
+    shm = {k: v[start:start + n] for k, v in self._pool.inputs.items()}
+    shm["qpos"][:] = qpos
     for f in dataclasses.fields(rmod.Looks):
-      shm["look." + f.name][:n] = getattr(looks, f.name)
+      shm["look." + f.name][:] = getattr(looks, f.name)
     for k, (_, _, shape) in self._var_specs.items():
       v = np.asarray(model_variables[k], np.float64)
       if v.shape != (n,) + shape:
         raise ValueError(f"model variable {k!r} must have shape {(n,) + shape}, got {v.shape}")
-      shm["var." + k][:n] = v
+      shm["var." + k][:] = v
     if self.frame_stack > 1:
-      shm["restart"][:n] = True if restart is None else np.broadcast_to(
+      shm["restart"][:] = True if restart is None else np.broadcast_to(
           np.asarray(restart, bool), (n,))
-    out = self._pool.run(n)
+    self._pool.submit(n, start)
+
+  def collect(self, copy_out: bool = True) -> np.ndarray:
+    """Waits for the frames `submit` handed out: uint8 (N, height, width,
+    3 · frame_stack), the same pixels `render` returns (`copy_out` as there)."""
+    out = self._pool.wait()
     return out.copy() if copy_out else out
 
+
+
+class RenderRows:
+  """Envs [start, stop) of a `RenderPool`'s batch, drawn by its workers
+  (`RenderPool.rows`): `render`, `submit` and `collect` as the pool's, on those
+  rows, each view's frame stacks its own. Envs that share one pool's workers
+  (`dmcr_jax.make(..., render_pool=view)`) each take a view of their own rows;
+  one call is in flight at a time among them. `close` does nothing (the pool's
+  owner closes the pool).
+
+  Attributes:
+    pool: the `RenderPool`.
+    start: the first row.
+    max_batch: stop − start.
+    task, domain, rm, height, width, frame_stack, quality, num_workers: the pool's.
+  """
+
+  def __init__(self, pool: RenderPool, start: int, stop: int):
+    if not 0 <= start < stop <= pool.max_batch:
+      raise ValueError(f"rows [{start}, {stop}) must be a non-empty range inside the "
+                       f"pool's batch [0, {pool.max_batch})")
+    self.pool, self.start, self.max_batch = pool, int(start), int(stop - start)
+    for name in ("task", "domain", "rm", "height", "width", "frame_stack", "quality",
+                 "num_workers"):
+      setattr(self, name, getattr(pool, name))
+    self._submitted = False
+
+  @property
+  def busy(self) -> bool:
+    """Whether this view's `submit` awaits its `collect`."""
+    return self._submitted
+
+  def render(self, qpos, looks, model_variables=None, *, restart=None,
+             copy_out: bool = True) -> np.ndarray:
+    """`RenderPool.render` of these rows."""
+    self.submit(qpos, looks, model_variables, restart=restart)
+    return self.collect(copy_out)
+
+  def submit(self, qpos, looks, model_variables=None, *, restart=None) -> None:
+    """`RenderPool.submit` of these rows."""
+    self.pool._submit(qpos, looks, model_variables, restart, self.start)
+    self._submitted = True
+
+  def collect(self, copy_out: bool = True) -> np.ndarray:
+    """`RenderPool.collect` of this view's `submit`."""
+    if not self._submitted:
+      raise RuntimeError("collect() without a submit() of these rows")
+    self._submitted = False
+    return self.pool.collect(copy_out)
+
+  def close(self) -> None:
+    """Nothing: the pool's owner closes it."""
