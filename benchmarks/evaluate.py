@@ -75,14 +75,16 @@ def env_baseline(task: str, num_envs: int, steps: int, frame_skip: int, frame_st
                  size: int) -> dict:
   """The JAX env's own agent-steps/s: `steps` zero-action steps of `num_envs` envs
   (visual seeds 1…N, every factor varying) in one jitted scan after a reset, the
-  last frame stacks returned (unreturned, XLA would drop the frames unused)."""
+  last frame stacks returned (unreturned, XLA would drop the frames unused), the
+  frames drawn in the protocol's chunks (`protocol.render_chunk`)."""
   import jax
   import jax.numpy as jnp
   import numpy as np
-  from dmcr_jax import jax_env, models
+  from dmcr_jax import jax_env, models, protocol
   task_ = models.load(task)
   penv = jax_env.make_env(task_, num_envs, np.arange(1, num_envs + 1, dtype=np.int32), "all",
-                          frame_skip, frame_stack, size, size)
+                          frame_skip, frame_stack, size, size,
+                          render_chunk=protocol.render_chunk(num_envs))
 
   @jax.jit
   def episode(penv, key):
