@@ -7,10 +7,13 @@ per number of agents K (`--agents 1,4`; random-init SAC agents of the paper's
 sizes, evaluated with `dmcr-evaluate`'s greedy policy):
 - the protocol: its first pass (compilation and one run) and a second pass with
   other params of the same shapes (the run alone: nothing compiles again), and
-  agent-steps/s of the second pass (every env's steps, K agents' together);
+  agent-steps/s of the second pass (every env's steps, K agents' together); of
+  the first pass also the seconds JAX spent tracing and lowering ("trace_s") and
+  XLA spent compiling ("xla_compile_s"), as JAX's monitoring events report them;
 - ray caster ("jax"): the JAX env's own agent-steps/s at the same batch size (the
   envs of one block: `jax_env.PixelEnv.step` with zero actions in one jitted
-  `lax.scan` over an episode, no policy), compile and run apart, and the ratio;
+  `lax.scan` over an episode, no policy, its frames kept as the result so that
+  they are drawn), compile and run apart, and the ratio;
 - pool: the render pool's exact frames/s at the protocol's batch size
   (`RenderPool.render` of fixed states, `dmcr_jax.benchmarks.render.bench_pool`,
   the block's envs in one call) and the ratio of the protocol's frames/s (one
@@ -29,6 +32,7 @@ the JSONL file.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import time
 
 import dmcr_jax  # noqa: F401  (first: picks a headless MUJOCO_GL before dm_control reads it)
@@ -47,17 +51,42 @@ def sac_agents(task: str, k: int, image_size: int, frame_stack: int, seed: int =
   return evaluate.policy_params(agents, list(range(k)))
 
 
+@contextlib.contextmanager
+def compile_seconds():
+  """A context giving a dict that fills with the seconds JAX spends, inside it,
+  tracing and lowering ("trace_s") and in XLA's compiler ("xla_compile_s")
+  (`jax.monitoring` duration events of every function compiled)."""
+  import jax
+  trace = ("/jax/core/compile/jaxpr_trace_duration",
+           "/jax/core/compile/jaxpr_to_mlir_module_duration")
+  out = dict(trace_s=0.0, xla_compile_s=0.0)
+
+  def listen(event, seconds, **_):
+    if event in trace:
+      out["trace_s"] += seconds
+    elif event == "/jax/core/compile/backend_compile_duration":
+      out["xla_compile_s"] += seconds
+  jax.monitoring.register_event_duration_secs_listener(listen)
+  try:
+    yield out
+  finally:
+    jax.monitoring.unregister_event_duration_listener(listen)
+
+
 def env_baseline(task: str, num_envs: int, steps: int, frame_skip: int, frame_stack: int,
                  size: int) -> dict:
   """The JAX env's own agent-steps/s: `steps` zero-action steps of `num_envs` envs
-  (visual seeds 1…N, every factor varying) in one jitted scan after a reset."""
+  (visual seeds 1…N, every factor varying) in one jitted scan after a reset, the
+  last frame stacks returned (unreturned, XLA would drop the frames unused), the
+  frames drawn in the protocol's chunks (`protocol.render_chunk`)."""
   import jax
   import jax.numpy as jnp
   import numpy as np
-  from dmcr_jax import jax_env, models
+  from dmcr_jax import jax_env, models, protocol
   task_ = models.load(task)
   penv = jax_env.make_env(task_, num_envs, np.arange(1, num_envs + 1, dtype=np.int32), "all",
-                          frame_skip, frame_stack, size, size)
+                          frame_skip, frame_stack, size, size,
+                          render_chunk=protocol.render_chunk(num_envs))
 
   @jax.jit
   def episode(penv, key):
@@ -65,10 +94,11 @@ def env_baseline(task: str, num_envs: int, steps: int, frame_skip: int, frame_st
     zeros = jnp.zeros((num_envs, task_.action_size), jnp.float32)
     state, _ = jax.lax.scan(lambda s, _: (penv.step(s, zeros)[0], None), state, None,
                             length=steps)
-    return state.physics.episode_return
+    return state.physics.episode_return, state.obs
 
-  t = R.measure(lambda: episode(penv, jax.random.key(0)), repeats=1)
-  return dict(compile_s=t.compile_s - t.run_s, run_s=t.run_s,
+  with compile_seconds() as seconds:
+    t = R.measure(lambda: episode(penv, jax.random.key(0)), repeats=1)
+  return dict(seconds, compile_s=t.compile_s - t.run_s, run_s=t.run_s,
               agent_steps_per_s=num_envs * steps / t.run_s)
 
 
@@ -87,7 +117,8 @@ def bench_protocol(task: str, renderer: str, k: int, args) -> dict:
   first_params = sac_agents(task, k, args.image_size, args.frame_stack, seed=0)
   second_params = sac_agents(task, k, args.image_size, args.frame_stack, seed=k)
   t0 = time.perf_counter()
-  first = proto(first_params)
+  with compile_seconds() as seconds:
+    first = proto(first_params)
   first_s = time.perf_counter() - t0
   t0 = time.perf_counter()
   second = proto(second_params)
@@ -100,7 +131,7 @@ def bench_protocol(task: str, renderer: str, k: int, args) -> dict:
               groups=len(protocol.pool_groups(k, proto.block)) if renderer == "pool" else None,
               blocks=proto.num_blocks, episode_length=proto.episode_length,
               action_repeat=proto.env_kwargs["frame_skip"], first_pass_s=first_s,
-              compile_s=max(first_s - run_s, 0.0), run_s=run_s, agent_steps=steps,
+              compile_s=max(first_s - run_s, 0.0), run_s=run_s, agent_steps=steps, **seconds,
               agent_steps_per_s=steps / run_s, mean_all=float(first.mean(
                   proto.conditions[-1]).mean()),
               device=jax.devices()[0].device_kind, platform=jax.default_backend())
@@ -108,8 +139,9 @@ def bench_protocol(task: str, renderer: str, k: int, args) -> dict:
 
 def markdown(rows: list[dict]) -> str:
   """The rows as a table: protocol rows with their baselines and ratios."""
-  lines = ["| task | renderer | variant | envs per block × blocks | compile s | run s | "
-           "throughput | baseline | ratio |", "|---|---|---|---:|---:|---:|---:|---:|---:|"]
+  lines = ["| task | renderer | variant | envs per block × blocks | compile s | XLA compile s | "
+           "run s | throughput | baseline | ratio |",
+           "|---|---|---|---:|---:|---:|---:|---:|---:|---:|"]
   for r in rows:
     if r.get("is_baseline"):
       continue
@@ -117,8 +149,9 @@ def markdown(rows: list[dict]) -> str:
              if r.get("baseline_throughput") else "–")
     base = (f"{r['baseline_throughput']:,.0f} ({r['baseline']})"
             if r.get("baseline_throughput") else "–")
+    xla = f"{r['xla_compile_s']:.1f}" if r.get("xla_compile_s") is not None else "–"
     lines.append(f"| {r['task']} | {r['renderer']} | {r['variant']} | "
-                 f"{r['block_envs']:,} × {r['blocks']} | {r['compile_s']:.1f} | "
+                 f"{r['block_envs']:,} × {r['blocks']} | {r['compile_s']:.1f} | {xla} | "
                  f"{r['run_s']:.1f} | {r['throughput']:,.0f} {r['unit']} | {base} | {ratio} |")
   return "\n".join(lines) + "\n"
 
@@ -158,7 +191,8 @@ def main(argv=None) -> None:
         if renderer == "jax":
           env = env_baseline(a.task, n, own["episode_length"], frame_skip, a.frame_stack,
                              a.image_size)
-          b = R.row(dict(own, agents=None), "JAX env (zero actions)", n=n,
+          b = R.row(dict(own, agents=None, trace_s=env["trace_s"],
+                         xla_compile_s=env["xla_compile_s"]), "JAX env (zero actions)", n=n,
                     throughput=env["agent_steps_per_s"], unit="agent-steps/s",
                     compile_s=env["compile_s"], run_s=env["run_s"], is_baseline=True)
         else:

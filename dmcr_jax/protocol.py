@@ -25,14 +25,17 @@ as one env batch on the device (split into blocks of at most `max_envs` envs, al
 of one shape, so one compilation serves every block): per block one jitted call
 makes the looks from the per-env seeds and factor masks, resets the physics from
 the per-env seeds and `lax.scan`s the episode with the policy inside, with no host
-round trip per step. "pool" renders MuJoCo's own pixels in the CPU render pool
+round trip per step (each scan step draws the frames, asks the policy and steps
+the physics; the program holds one render and one physics step, and no env resets
+inside a block). "pool" renders MuJoCo's own pixels in the CPU render pool
 (`dmcr_jax.make`), every condition's envs in one block (`PixelVectorEnv.set_looks`),
 the same jitted policy called from the host loop; a block steps as two pipelined
 groups of envs (`pool_groups`), a group's physics and policy running while the
 workers draw the other's frames. Returns are those of `dmcr_jax.make`'s env stepped by
-the same policy (`tests/test_protocol.py`). The policy is vmapped over envs: an
-env's action depends on its own observation and key alone, so the returns do not
-depend on `max_envs` or on the number of agents (up to the float rounding of a
+the same policy (`tests/test_protocol.py`). The policy is vmapped over envs (and
+the K agents run one after another, each on its own envs): an env's action
+depends on its own observation and key alone, so the returns do not depend on
+`max_envs` or on the number of agents (up to the float rounding of a
 batched matrix product, which on some backends varies with the batch size).
 The plan (conditions, looks, seeds, every agent's episodes) is
 `dmcr_jax.protocol_plan`'s; the reports are `dmcr_jax.protocol_report`'s.
@@ -107,10 +110,14 @@ POLICY_STREAM = 0x9E3779B9
 
 def policy_actions(policy: Policy, params, obs: jax.Array, index: jax.Array,
                    t: jax.Array, key: jax.Array, agents: int | None) -> jax.Array:
-  """Every env's action: the policy vmapped over envs (and over agents).
+  """Every env's action: the policy vmapped over envs, one agent after another.
 
   Env e's action is ``policy(params_k, obs[e:e+1], fold_in(fold_in(key, index[e]),
-  t))[0]``, so it depends on its own observation and key alone.
+  t))[0]``, so it depends on its own observation and key alone. The vmap over
+  envs batches the policy's layers over them (a batch-1 convolution becomes one
+  of the agent's B envs); the K agents run in turn (`lax.map`), so each agent's
+  layers keep their own unbatched weights (a vmap over agents would make grouped
+  convolutions of K groups).
 
   Args:
     policy: the `Policy`.
@@ -130,7 +137,7 @@ def policy_actions(policy: Policy, params, obs: jax.Array, index: jax.Array,
   if agents is None:
     return per_env(params, obs, keys)
   blocks = lambda x: x.reshape((agents, x.shape[0] // agents) + x.shape[1:])
-  actions = jax.vmap(per_env)(params, blocks(obs), blocks(keys))
+  actions = jax.lax.map(lambda a: per_env(*a), (params, blocks(obs), blocks(keys)))
   return actions.reshape((obs.shape[0],) + actions.shape[2:])
 
 
@@ -147,36 +154,107 @@ def env_actions(actions: jax.Array, low: np.ndarray, high: np.ndarray) -> jax.Ar
   return (low + (actions.astype(jnp.float32) + 1.0) * 0.5 * (high - low)).astype(jnp.float32)
 
 
+def block_looks(maker, masks: jax.Array, seeds: jax.Array):
+  """Each env's `DeviceLook`: its visual seed under its own factor mask.
+
+  Args:
+    maker: the domain's `jax_render_scene.LookMaker` (its own mask is replaced).
+    masks: bool (N, 7) factor masks (`params.factor_mask`).
+    seeds: int32 (N,) visual seeds.
+
+  Returns:
+    The `DeviceLook` of the N envs (leading axis N).
+  """
+  looks = jax.vmap(lambda m, s: maker.replace(mask=m)(s[None]))(masks, seeds)
+  return jax.tree.map(lambda x: x[:, 0], looks)
+
+
+def episode_step(task, frame_skip: int, physics, actions: jax.Array):
+  """One agent step of N envs inside an episode: `physics_env.step` where no env
+  resets (no env's previous step ended its episode), without its reset branch.
+
+  Args:
+    task: the `Task`.
+    frame_skip: control steps per agent step.
+    physics: the `physics_env.EnvState`, no env with `needs_reset` set.
+    actions: float (N, A) in the task's bounds.
+
+  Returns:
+    The next `EnvState` (its `needs_reset` marks the envs whose episode ended).
+  """
+  from dmcr_jax import physics_env
+  stepped, reward = jax.vmap(lambda s, a: physics_env.skip_step(task, s, a, frame_skip))(
+      physics.task, actions)
+  return physics.replace(task=stepped, episode_step=physics.episode_step + 1,
+                         episode_return=physics.episode_return + reward,
+                         needs_reset=stepped.done)
+
+
+def render_chunk(num_envs: int) -> int | None:
+  """Envs per render chunk for a block of `num_envs` envs: the fewest chunks of
+  at most `jax_env.RENDER_CHUNK` envs, all of one size (None: one chunk)."""
+  from dmcr_jax import jax_env
+  if num_envs <= jax_env.RENDER_CHUNK:
+    return None
+  return -(-num_envs // -(-num_envs // jax_env.RENDER_CHUNK))
+
+
+def render_padding(penv) -> int:
+  """Envs the block's frames are padded with (copies of env 0) to a whole number
+  of `penv.render_chunk`-env chunks, so the render is one vmapped chunk program
+  (`lax.map` renders a remainder with a second one); 0 for the fused kernel."""
+  chunk = penv.render_chunk
+  if penv.render_kernel or not chunk or chunk >= penv.num_envs:
+    return 0
+  return -penv.num_envs % chunk
+
+
+def _pad(tree, extra: int):
+  """Every leaf with `extra` copies of its row 0 appended."""
+  if not extra:
+    return tree
+  return jax.tree.map(lambda x: jnp.concatenate(
+      [x, jnp.broadcast_to(x[:1], (extra,) + x.shape[1:])]), tree)
+
+
 def _ray_block(penv, params, seeds, masks, resets, index, key, *, policy, agents, steps):
   """One block of the ray caster's pass: looks, reset, `steps` agent steps.
 
+  Each scan step renders the envs' frames, stacks them, asks the policy and
+  steps the physics (`episode_step`: `steps` is the episode length, so no env
+  resets inside the block); a frame is rendered once, at one place in the
+  program. The stacks and returns are those of `jax_env.PixelEnv` stepped from
+  `start` (the first stack is the first frame repeated).
+
   Args: the block's envs' int32 visual seeds (N,), bool factor masks (N, 7),
   uint32 reset seeds (N,), int32 episode indices (N,); `penv` a `PixelEnv` of N
-  envs (its looks are made here); `key` the policy key.
+  envs without looks, its frames padded by `render_padding`; `key` the policy key.
 
   Returns:
     (episode returns float32 (N,), `worst_action` float32 (K,) over the episode).
   """
   from dmcr_jax import physics_env
-  looks = jax.vmap(lambda m, s: penv.maker.replace(mask=m)(s[None]))(masks, seeds)
-  looks = jax.tree.map(lambda x: x[:, 0], looks)
-  env = penv.replace(looks=looks, fixed_seeds=seeds)
-  physics = physics_env.init(env.task, seeds, jax.vmap(jax.random.key)(resets),
-                             env.num_envs)
-  state = env.start(physics, looks)
-  k = agents or 1
-  low, high = env.task.action_low, env.task.action_high
+  n, k = penv.num_envs, agents or 1
+  extra = render_padding(penv)
+  looks = _pad(block_looks(penv.maker, masks, seeds), extra)
+  physics = physics_env.init(penv.task, seeds, jax.vmap(jax.random.key)(resets), n)
+  low, high = penv.task.action_low, penv.task.action_high
 
   def body(carry, t):
-    state, worst = carry
-    actions = policy_actions(policy, params, state.obs, index, t, key, agents)
+    physics, obs, worst = carry
+    frame = penv.draw(_pad(penv.render_inputs(physics), extra), looks)[:n]
+    obs = jnp.where(t == 0, jnp.tile(frame, (1, 1, 1, penv.frame_stack)),
+                    jnp.concatenate([obs[..., 3:], frame], axis=-1))
+    actions = policy_actions(policy, params, obs, index, t, key, agents)
     worst = jnp.maximum(worst, worst_action(actions, k))  # NaN stays NaN
-    state, _, _ = env.step(state, env_actions(actions, low, high))
-    return (state, worst), None
+    physics = episode_step(penv.task, penv.frame_skip, physics,
+                           env_actions(actions, low, high))
+    return (physics, obs, worst), None
 
-  init = (state, jnp.zeros((k,), jnp.float32))
-  (state, worst), _ = jax.lax.scan(body, init, jnp.arange(steps, dtype=jnp.int32))
-  return state.physics.episode_return, worst
+  obs = jnp.zeros((n, penv.height, penv.width, 3 * penv.frame_stack), jnp.uint8)
+  init = (physics, obs, jnp.zeros((k,), jnp.float32))
+  (physics, _, worst), _ = jax.lax.scan(body, init, jnp.arange(steps, dtype=jnp.int32))
+  return physics.episode_return, worst
 
 
 @functools.cache
@@ -614,8 +692,8 @@ def _pixel_env(task: str, num_envs: int, frame_skip: int, frame_stack: int, heig
   t = models.load(task)
   rm, scene = jax_env.scene_of(t.spec.domain, opts.get("camera", 0))
   chunk = opts.get("render_chunk")
-  if chunk is None and num_envs > jax_env.RENDER_CHUNK:
-    chunk = jax_env.RENDER_CHUNK
+  if chunk is None:
+    chunk = render_chunk(num_envs)
   return jax_env.PixelEnv(
       scene=scene, maker=JS.look_maker(scene, rm, "all"), looks=None, fixed_seeds=None,
       seed_bounds=None, task=t, num_envs=int(num_envs), frame_skip=int(frame_skip),

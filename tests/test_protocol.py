@@ -206,6 +206,29 @@ def test_k_agents_in_one_pass_equal_k_single_passes(single):
       np.testing.assert_array_equal(both.returns[c][k], one.returns[c][0])
 
 
+def test_a_block_renders_in_chunks_of_one_size():
+  # The fewest chunks of at most RENDER_CHUNK envs, one size; a block that does not
+  # fill its last chunk is padded (lax.map would compile a second render for it).
+  from dmcr_jax import jax_env
+  assert jax_env.RENDER_CHUNK == 256
+  assert P.render_chunk(256) is None and P.render_chunk(2400) == 240
+  assert P.render_chunk(257) == 129 and P.render_chunk(9600) == 253
+  penv = lambda n, chunk, kernel=False: P._pixel_env(TASK, n, 100, 3, 16, 16, ()).replace(
+      render_chunk=chunk, render_kernel=kernel)
+  assert P.render_padding(penv(9600, 253)) == 14 and P.render_padding(penv(2400, 240)) == 0
+  assert P.render_padding(penv(15, 4)) == 1 and P.render_padding(penv(15, None)) == 0
+  assert P.render_padding(penv(15, 4, kernel=True)) == 0
+
+
+@pytest.mark.slow
+def test_padded_render_chunks_give_the_same_returns(single):
+  _, want = single
+  got = P.evaluate(TASK, pixel_policy, make_params(), render_chunk=4, **OPTS)  # 15 envs: 1 pad
+  np.testing.assert_array_equal(got.train, want.train)
+  for c in OPTS["conditions"]:
+    np.testing.assert_array_equal(got.returns[c], want.returns[c])
+
+
 @pytest.mark.slow
 def test_the_pool_runs_every_condition_in_one_batch_with_the_same_returns():
   # The pool env of every condition's looks (a vary per env) against the pool env
