@@ -177,6 +177,9 @@ def main(argv=None) -> None:
   p.add_argument("--no-baseline", action="store_true", help="only the protocol's rows")
   p.add_argument("--out", default=None, help="JSONL file the rows are appended to")
   a = p.parse_args(argv)
+  if a.train_episodes > a.visual_seeds * a.dynamics_seeds:
+    p.error(f"--train-episodes ({a.train_episodes}) must be at most --visual-seeds × "
+            f"--dynamics-seeds = {a.visual_seeds * a.dynamics_seeds}")
   from dmcr_jax.env import check_renderer_name, default_frame_skip
   renderers = [check_renderer_name(r) for r in a.renderers.split(",")]
   ks = [int(k) for k in a.agents.split(",")]
