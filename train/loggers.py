@@ -48,6 +48,7 @@ import math
 import netrc
 import os
 import sys
+import time
 from typing import Protocol
 
 LOGGERS = ("csv", "tensorboard", "wandb")
@@ -190,8 +191,12 @@ class TensorBoardLogger:
   def __init__(self, out_dir: str, names: list[str], purge_step: int | None = None):
     from tensorboardX import SummaryWriter
     self.root = os.path.join(out_dir, TENSORBOARD_DIR)
+    # A suffix of its own per writer: the event file's name otherwise holds only the
+    # second it was made, and a resumed segment started within that second would
+    # write over the earlier segment's file (names sort in the order they were made).
+    suffix = f".{time.time_ns()}.{os.getpid()}"
     self.writers = [SummaryWriter(os.path.join(self.root, n), purge_step=purge_step,
-                                  flush_secs=30) for n in names]
+                                  flush_secs=30, filename_suffix=suffix) for n in names]
 
   def scalars(self, agent, step, values):
     w = self.writers[agent]
