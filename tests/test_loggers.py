@@ -68,7 +68,10 @@ def read_wandb(out_dir: str) -> dict:
   """{run id: {"name", "group", "config", "history": [{key: value}]}} of the offline W&B
   runs under `<out_dir>/wandb` (a resumed run's files joined under its id)."""
   runs = {}
-  for path in sorted(glob.glob(os.path.join(out_dir, "wandb", "offline-run-*", "*.wandb"))):
+  # In the order they were written: a segment that resumes a run within the second it
+  # was made gets the folder name with a "-1" suffix, which sorts before the first's.
+  paths = glob.glob(os.path.join(out_dir, "wandb", "offline-run-*", "*.wandb"))
+  for path in sorted(paths, key=os.path.getmtime):
     for r in wandb_records(path):
       kind = r.WhichOneof("record_type")
       if kind == "run":
