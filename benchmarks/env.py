@@ -39,7 +39,7 @@ import numpy as np
 
 import dmcr_jax  # first: picks a headless MUJOCO_GL before dm_control reads it
 from dmcr_jax.benchmarks import rows as R
-from dmcr_jax.env import check_renderer_name
+from dmcr_jax.env_checks import check_renderer_name
 
 
 def original_pipeline(task: str, frame_skip: int, size: int, steps: int,

@@ -180,7 +180,7 @@ def main(argv=None) -> None:
   if a.train_episodes > a.visual_seeds * a.dynamics_seeds:
     p.error(f"--train-episodes ({a.train_episodes}) must be at most --visual-seeds × "
             f"--dynamics-seeds = {a.visual_seeds * a.dynamics_seeds}")
-  from dmcr_jax.env import check_renderer_name, default_frame_skip
+  from dmcr_jax.env_checks import check_renderer_name, default_frame_skip
   renderers = [check_renderer_name(r) for r in a.renderers.split(",")]
   ks = [int(k) for k in a.agents.split(",")]
   frame_skip = a.action_repeat or default_frame_skip(a.task)

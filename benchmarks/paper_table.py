@@ -30,7 +30,7 @@ import os
 
 import numpy as np
 
-from dmcr_jax.env import ACTION_REPEAT, default_frame_skip
+from dmcr_jax.env_checks import ACTION_REPEAT, default_frame_skip
 from dmcr_jax.train import paper_results
 
 TRAINING_STEPS = {"walker-walk": 250_000, "cheetah-run": 250_000, "hopper-stand": 250_000,

@@ -56,7 +56,7 @@ def programs(task: str, envs: int, size: int, steps: int, agents: int, frame_sta
   from dmcr_jax import jax_env, models, physics_env
   from dmcr_jax import protocol as P
   from dmcr_jax.benchmarks.evaluate import sac_agents
-  from dmcr_jax.env import default_frame_skip
+  from dmcr_jax.env_checks import default_frame_skip
   from dmcr_jax.models.base import physics_jit
   from dmcr_jax.train import evaluate as tev
   from dmcr_jax.visuals.params import factor_mask

@@ -27,7 +27,7 @@ import numpy as np
 from dm_env import specs
 
 from dmcr_jax import _ENV_ID as ENV_ID  # "dmcr/{task}-v0"
-from dmcr_jax.env import PixelVectorEnv
+from dmcr_jax.env_pool import PixelVectorEnv
 
 
 def _first(info: dict) -> dict:

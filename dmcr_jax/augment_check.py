@@ -168,7 +168,7 @@ def _render(size: int) -> tuple[np.ndarray, np.ndarray]:
   from dm_control import suite
 
   from dmcr_jax import visuals
-  from dmcr_jax.env import default_frame_skip
+  from dmcr_jax.env_checks import default_frame_skip
   from dmcr_jax.visuals import show
   stacks = []
   for task in CHECK_TASKS:

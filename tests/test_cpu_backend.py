@@ -79,12 +79,12 @@ def test_env_physics_compiles_without_ynnpack_fusions():
   import jax
   import numpy as np
 
-  from dmcr_jax import env as env_module
+  from dmcr_jax import env_base
   from dmcr_jax import models
   from dmcr_jax.models import base
   assert base.physics_compiler_options() == base.NO_YNN_FUSIONS  # this jaxlib knows it
   task = models.load("ball_in_cup-catch")
-  init, step = env_module._physics_fns(task, 32, 4, False)
+  init, step = env_base._physics_fns(task, 32, 4, False)
   seeds = np.zeros(32, np.int32)
   states = jax.eval_shape(init, jax.random.key(0), seeds)
   actions = jax.ShapeDtypeStruct((32, task.action_size), np.float32)

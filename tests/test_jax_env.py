@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import dmcr_jax
-from dmcr_jax import env as env_module
+from dmcr_jax import env_base
 from dmcr_jax import jax_env
 from dmcr_jax.visuals.levels import levels
 from dmcr_jax.train import loop, sac
@@ -195,7 +195,7 @@ def test_set_state_restarts_the_stacks_from_that_state(envs):
 def test_first_compile_is_announced_once_and_a_closed_env_refuses_to_step(
     envs, monkeypatch, capfd):
   # Sized as `envs`, so nothing compiles again; both renderers.
-  monkeypatch.setattr(env_module, "_ANNOUNCED", set())
+  monkeypatch.setattr(env_base, "_ANNOUNCED", set())
   for renderer, what in (("jax", "physics and ray-cast renderer"), ("pool", "physics")):
     for again in (False, True):
       env = _make(renderer, **({"workers": 1} if renderer == "pool" else {}))

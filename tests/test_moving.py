@@ -12,6 +12,7 @@ import pytest
 
 import dmcr_jax
 from dmcr_jax import env as env_module
+from dmcr_jax import env_pool
 from dmcr_jax import jax_env
 from dmcr_jax import visuals as V
 from dmcr_jax.visuals import jax_render as JR
@@ -59,8 +60,8 @@ def _assert_same(a, b, rtol=0.0, atol=0.0):
 def test_bad_moving_is_refused_before_anything_is_built(kwargs, message, monkeypatch):
   def built(*a, **k):
     raise AssertionError("built something before checking moving/intensity")
-  monkeypatch.setattr(env_module.models, "load", built)
-  monkeypatch.setattr(env_module, "RenderPool", built)
+  monkeypatch.setattr(dmcr_jax.models, "load", built)
+  monkeypatch.setattr(env_pool, "RenderPool", built)
   task = kwargs.pop("task", "walker-walk")
   for renderer in ("pool", "jax"):
     with pytest.raises(ValueError, match=message):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import dmcr_jax
-from dmcr_jax import env as env_mod
+from dmcr_jax import env_base
 from dmcr_jax import models, physics_env, physics_pool
 from dmcr_jax.physics_pool import PhysicsPool, _Stepper
 from dmcr_jax.visuals.levels import EnvRanges, SeedRange
@@ -23,7 +23,7 @@ pytestmark = pytest.mark.xdist_group("env")
 
 def in_process():
   """The env's own jitted (init, step) for N envs on the CPU."""
-  return env_mod._physics_fns(models.load(TASK), N, SKIP, False)
+  return env_base._physics_fns(models.load(TASK), N, SKIP, False)
 
 
 def plain(tree):

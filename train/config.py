@@ -40,8 +40,8 @@ import jax
 import numpy as np
 
 from dmcr_jax.checks import positive_int
-from dmcr_jax.env import (RENDERERS, check_physics_workers,  # noqa: F401 (RENDERERS: CLIs)
-                          check_renderer_name)
+from dmcr_jax.env_checks import (RENDERERS, check_physics_workers,  # noqa: F401 (RENDERERS: CLIs)
+                                 check_renderer_name)
 from dmcr_jax.visuals.levels import TEST_SEEDS, TRAIN_SEEDS, SeedRange
 from dmcr_jax.train import devices as devs
 from dmcr_jax.train import sac

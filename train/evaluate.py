@@ -52,7 +52,7 @@ import numpy as np
 
 from dmcr_jax import protocol
 from dmcr_jax.checks import positive_int
-from dmcr_jax.env import default_frame_skip
+from dmcr_jax.env_checks import default_frame_skip
 from dmcr_jax.protocol import (PROGRESS_FILE, conditions_for, generalization_error,
                                held_out_seeds)
 from dmcr_jax.protocol_report import aug_groups, few_shot_markdown, few_shot_rows, markdown, write
