@@ -12,7 +12,12 @@ The protocol (`prepare` plans it, its `Protocol` runs it, `evaluate` does both):
   `dmcr_jax.TEST_SEEDS` with a NumPy generator seeded by `seed`) × `dynamics_seeds`
   initial states (paper: 3): "none" (nothing varied), one factor at a time (light,
   camera, body, floor, then background, target and reflectance where they apply to
-  the domain) and "all" (`conditions_for`);
+  the domain) and "all" (`conditions_for`); and moving conditions
+  ``moving-<factor>@<intensity>`` (`conditions=` names, or `moving_intensities=`
+  for every moving factor and "all" at each intensity): dm_control's look with
+  that factor moving within each episode, the held-out seed picking its motion, as
+  `dmcr_jax.make(vary="none", moving=factor, intensity=intensity)` draws it
+  (`protocol_plan.parse_condition`; intensity 0 is "none");
 - E_G = (train − test) / train per condition (paper Sec. 3).
 Episode i of every condition starts from the same initial state (per-env reset
 seed `reset_seeds(n, seed)[i]`) and its policy draws the same keys, so conditions
@@ -27,11 +32,13 @@ makes the looks from the per-env seeds and factor masks, resets the physics from
 the per-env seeds and `lax.scan`s the episode with the policy inside, with no host
 round trip per step (each scan step draws the frames, asks the policy and steps
 the physics; the program holds one render and one physics step, and no env resets
-inside a block). "pool" renders MuJoCo's own pixels in the CPU render pool
-(`dmcr_jax.make`), every condition's envs in one block (`PixelVectorEnv.set_looks`),
+inside a block; with moving conditions each step's looks are made in the scan, every
+env moving its own factors). "pool" renders MuJoCo's own pixels in the CPU render
+pool (`dmcr_jax.make`), every condition's envs in one block (`PixelVectorEnv.set_looks`),
 the same jitted policy called from the host loop; a block steps as two pipelined
-groups of envs (`pool_groups`), a group's physics and policy running while the
-workers draw the other's frames. Returns are those of `dmcr_jax.make`'s env stepped by
+groups of envs (`pool_groups`), or one group per motion when it holds moving
+conditions (`protocol_pool.block_groups`), a group's physics and policy running
+while the workers draw another's frames. Returns are those of `dmcr_jax.make`'s env stepped by
 the same policy (`tests/test_protocol.py`). The policy is vmapped over envs (and
 the K agents run one after another, each on its own envs): an env's action
 depends on its own observation and key alone, so the returns do not depend on
@@ -70,9 +77,11 @@ import numpy as np
 
 from dmcr_jax._progress import progress_bar
 from dmcr_jax.checks import positive_int
-from dmcr_jax.protocol_plan import (FACTOR_CONDITIONS, PROGRESS_FILE, Plan, Segment,
-                                    check_disjoint, conditions_for, held_out_seeds,
-                                    is_default_look, load_progress, look_label, make_plan,
+from dmcr_jax.protocol_plan import (FACTOR_CONDITIONS, MOVING_PREFIX, PROGRESS_FILE, Plan,
+                                    Segment, check_conditions, check_disjoint,
+                                    conditions_for, held_out_seeds, is_default_look,
+                                    load_progress, look_label, make_plan, moving_condition,
+                                    moving_conditions_for, moving_of, parse_condition,
                                     reset_seeds, save_progress, train_look_seeds)
 from dmcr_jax.protocol_policy import (POLICY_STREAM, Policy, agent_count, check_actions,
                                       check_policy, env_actions, params_digest,
@@ -80,17 +89,18 @@ from dmcr_jax.protocol_policy import (POLICY_STREAM, Policy, agent_count, check_
 from dmcr_jax.protocol_pool import (POOL_GROUPS, _pool_act, pool_groups,  # noqa: F401
                                     pool_runner, run_pipelined)
 from dmcr_jax.protocol_ray import (_pixel_env, _ray_block, _ray_block_jit,  # noqa: F401
-                                   block_looks,
-                                   episode_step, render_chunk, render_padding)
+                                   block_looks, episode_step, render_chunk, render_padding)
 from dmcr_jax.protocol_report import generalization_error
 from dmcr_jax.protocol_results import Results
 from dmcr_jax.visuals.levels import SeedRange
 
-__all__ = ["FACTOR_CONDITIONS", "POLICY_STREAM", "POOL_GROUPS", "PROGRESS_FILE", "Plan",
-           "Policy", "Protocol", "Results", "Segment", "block_looks", "check_actions",
-           "check_disjoint", "check_policy", "conditions_for", "env_actions", "episode_step",
-           "evaluate", "generalization_error", "held_out_seeds", "is_default_look",
-           "load_progress", "look_label", "make_plan", "params_digest", "policy_actions",
+__all__ = ["FACTOR_CONDITIONS", "MOVING_PREFIX", "POLICY_STREAM", "POOL_GROUPS",
+           "PROGRESS_FILE", "Plan", "Policy", "Protocol", "Results", "Segment",
+           "block_looks", "check_actions", "check_conditions", "check_disjoint",
+           "check_policy", "conditions_for", "env_actions", "episode_step", "evaluate",
+           "generalization_error", "held_out_seeds", "is_default_look", "load_progress",
+           "look_label", "make_plan", "moving_condition", "moving_conditions_for",
+           "moving_of", "params_digest", "parse_condition", "policy_actions",
            "pool_groups", "prepare", "render_chunk", "render_padding", "reset_seeds",
            "run_pipelined", "save_progress", "train_look_seeds", "worst_action"]
 
@@ -158,9 +168,12 @@ class Protocol:
     """Host arrays of a block's K · B envs (agent-major)."""
     p, k = self.plan, self.agents or 1
     flat = lambda x: x.reshape((k * x.shape[1],) + x.shape[2:])
+    on, intensity = p.motion_arrays(idx)
     return dict(seeds=flat(p.visual_seed[:, idx]), masks=flat(p.mask[:, idx]),
                 vary_index=flat(p.vary_index[:, idx]),
-                resets=np.tile(p.reset_seed[idx], k), index=np.tile(p.index[idx], k))
+                resets=np.tile(p.reset_seed[idx], k), index=np.tile(p.index[idx], k),
+                motion_index=np.tile(p.motion_index[idx], k), motion=np.tile(on, (k, 1)),
+                intensity=np.tile(intensity, k))
 
   def __call__(self, params, *, labels: Sequence[str] | None = None,
                progress: bool | None = None, progress_file: str | None = None,
@@ -264,15 +277,19 @@ class Protocol:
   def _ray_runner(self, params, key):
     """A context giving `run_block(inputs) -> returns (K·B,)` on the device."""
     penv, fn = self.pixel_env(), _ray_block_jit()
+    moving = self.plan.moving
 
     def run_block(inputs):
+      motion = (jnp.asarray(inputs["motion"]), jnp.asarray(inputs["intensity"])) \
+          if moving else None
       returns, worst = fn(penv, params, jnp.asarray(inputs["seeds"]),
                           jnp.asarray(inputs["masks"]), jnp.asarray(inputs["resets"]),
-                          jnp.asarray(inputs["index"]), key, policy=self.policy,
-                          agents=self.agents, steps=self.episode_length)
+                          jnp.asarray(inputs["index"]), key, motion, policy=self.policy,
+                          agents=self.agents, steps=self.episode_length, moving=moving)
       check_actions(np.asarray(worst))
       return np.asarray(returns, np.float64)
     yield run_block
+
   @contextlib.contextmanager
   def _pool_runner(self, params, key):
     """A context giving `run_block(inputs) -> returns (K·B,)` with the render pool
@@ -295,7 +312,8 @@ def _check_train_look(look, k: int) -> tuple:
 
 def prepare(task: str, policy: Policy, *, agents: int | None = None, renderer: str = "jax",
             visual_seeds: int = 100, dynamics_seeds: int = 3, train_episodes: int = 100,
-            conditions: Sequence[str] | None = None, train_look=0, train_vary="all",
+            conditions: Sequence[str] | None = None,
+            moving_intensities: Sequence[float] = (), train_look=0, train_vary="all",
             seed: int = 0, image_size: int | tuple[int, int] = 84, frame_stack: int = 3,
             action_repeat: int | None = None, max_envs: int | None = None,
             **render_options) -> Protocol:
@@ -310,7 +328,12 @@ def prepare(task: str, policy: Policy, *, agents: int | None = None, renderer: s
     dynamics_seeds: initial states per look (paper: 3).
     train_episodes: episodes at the training look (paper: 100), at most
       visual_seeds · dynamics_seeds.
-    conditions: the conditions to run (default: every one that applies, `conditions_for`).
+    conditions: the conditions to run (default: every static one that applies,
+      `conditions_for`); static names ("none", "floor", "all", …) or moving ones,
+      ``moving-<factor>@<intensity>`` (`protocol_plan.parse_condition`: dm_control's
+      look with that factor moving within each episode; factor "all" moves all).
+    moving_intensities: also every moving condition (each moving factor of the
+      domain, then "all") at each of these intensities (e.g. (0.1, 0.2, 0.3)).
     train_look: the training look: a visual seed (0: dm_control's), a `SeedRange`
       (few-shot), or one per agent.
     train_vary: the factors the training looks vary ("all").
@@ -353,14 +376,7 @@ def prepare(task: str, policy: Policy, *, agents: int | None = None, renderer: s
   if unknown:
     raise ValueError(f"unknown option {', '.join(unknown)}; renderer={renderer!r} takes "
                      f"{', '.join(mine + ('camera',))}")
-  valid = conditions_for(task)
-  conditions = valid if conditions is None else tuple(conditions)
-  bad = [c for c in conditions if c not in valid]
-  if bad or not conditions:
-    raise ValueError(f"conditions {bad or conditions!r} are not valid for {task}; valid: "
-                     f"{', '.join(valid)}")
-  if len(set(conditions)) != len(conditions):
-    raise ValueError(f"conditions {conditions!r} name a condition twice")
+  conditions = check_conditions(task, conditions, moving_intensities)
   from dmcr_jax.visuals.factors import check_vary
   domain = task.split("-", 1)[0]
   check_vary(domain, train_vary)
@@ -376,7 +392,7 @@ def prepare(task: str, policy: Policy, *, agents: int | None = None, renderer: s
   test = held_out_seeds(visual_seeds, seed)
   for look in set(looks):
     check_disjoint(test, look)
-  plan = make_plan(domain, conditions, test, dynamics_seeds, train_episodes, looks,
+  plan = make_plan(task, conditions, test, dynamics_seeds, train_episodes, looks,
                    train_vary, seed)
   e = plan.episodes
   block = e if max_envs is None else max(1, min(e, positive_int("max_envs", max_envs) // k))

@@ -1,7 +1,9 @@
 """The render pool's protocol pass: a block's envs as pipelined pool envs on the host.
 
-A pool block's K·B envs (agent-major) step as `pool_groups` groups, each a
-`dmcr_jax.make` pool env drawn by one shared `RenderPool`'s workers; `run_pipelined`
+A pool block's K·B envs (agent-major) step as groups (`block_groups`: the
+pipelined halves of `pool_groups`, or one group per motion where the block holds
+moving conditions), each a `dmcr_jax.make` pool env (made with the group's
+`moving` and `intensity`) drawn by one shared `RenderPool`'s workers; `run_pipelined`
 steps them round robin, so that one group's physics and policy (`_pool_act`, the
 jitted policy call) run while the workers draw another's frames. `pool_runner` is the
 pass's block runner (`Protocol._pool_runner`). Returns are those of `dmcr_jax.make`'s
@@ -98,11 +100,54 @@ def run_pipelined(envs, obs, index, act, steps: int) -> list[tuple[np.ndarray, d
   return last
 
 
+def block_groups(agents: int, motion_index: np.ndarray, groups: int = POOL_GROUPS
+                 ) -> list[tuple[int, np.ndarray, np.ndarray]]:
+  """How a pool block's K·B envs split into groups, one pool env each.
+
+  A pool env draws one motion (`Plan.motions`: static looks, or one moving
+  condition's factors and intensity, as `dmcr_jax.make(moving=..., intensity=...)`),
+  so a block whose episodes all share a motion steps as `pool_groups`' pipelined
+  groups, and a block of several motions as one group per motion (its episodes of
+  every agent, agent-major; these groups pipeline with each other).
+
+  Args:
+    agents: K.
+    motion_index: int (B,) each episode's motion (`Plan.motion_index` of the block).
+    groups: the most groups of a one-motion block.
+
+  Returns:
+    Per group (motion index, rows int (K·g,) into the block's envs, real bool (K·g,)
+    False on padding).
+  """
+  motion_index = np.asarray(motion_index)
+  block = len(motion_index)
+  motions = list(dict.fromkeys(motion_index.tolist()))
+  if len(motions) == 1:
+    return [(motions[0], rows, real) for rows, real in pool_groups(agents, block, groups)]
+  out = []
+  for m in motions:
+    j = np.flatnonzero(motion_index == m)
+    rows = (np.arange(agents)[:, None] * block + j[None]).reshape(-1)
+    out.append((m, rows, np.ones(rows.size, bool)))
+  return out
+
+
+def _env_keys(layout) -> list[tuple[int, int, int]]:
+  """Per group of a block's `block_groups` its pool env: (motion, size, n-th of those)."""
+  seen: dict = {}
+  keys = []
+  for m, rows, _ in layout:
+    n = seen[(m, len(rows))] = seen.get((m, len(rows)), -1) + 1
+    keys.append((m, len(rows), n))
+  return keys
+
+
 @contextlib.contextmanager
 def pool_runner(proto, params, key):
   """A context giving `run_block(inputs) -> returns (K·B,)` with the render pool:
-  the block's envs as `pool_groups` pipelined groups, one pool env each, all
-  drawn by one `RenderPool`'s workers (which stop when the context ends).
+  the block's envs as `block_groups` groups, one pool env each (made once per
+  motion and size over the pass's blocks), all drawn by one `RenderPool`'s workers
+  (which stop when the context ends).
 
   Args:
     proto: the `protocol.Protocol` (its task, plan, sizes and render options).
@@ -112,25 +157,31 @@ def pool_runner(proto, params, key):
   from dmcr_jax import models
   from dmcr_jax.env import check_camera, make
   from dmcr_jax.visuals.render_pool import RenderPool, default_workers
-  kw, k = proto.env_kwargs, proto.agents or 1
-  groups = pool_groups(k, proto.block)
-  size = len(groups[0][0])
+  kw, k, plan = proto.env_kwargs, proto.agents or 1, proto.plan
+  layout = lambda motion_index: block_groups(k, motion_index[:proto.block])
+  keys = list(dict.fromkeys(e for idx in proto.block_slices()
+                            for e in _env_keys(layout(plan.motion_index[idx]))))
+  starts = np.cumsum([0] + [size for _, size, _ in keys])
   opts = dict(kw["render"])
   check_camera(models.load(proto.task).mj_model, opts.get("camera", 0), proto.task)
-  workers = min(size, opts.pop("workers", None) or default_workers())
+  workers = min(max(size for _, size, _ in keys),
+                opts.pop("workers", None) or default_workers())
   (h, w), frame_stack = kw["image_size"], kw["frame_stack"]
   with contextlib.ExitStack() as stack:
-    pool = stack.enter_context(RenderPool(proto.task, max_batch=size * len(groups),
+    pool = stack.enter_context(RenderPool(proto.task, max_batch=int(starts[-1]),
                                           height=h, width=w, workers=workers,
                                           frame_stack=frame_stack, **opts))
-    envs = [stack.enter_context(make(
-        proto.task, renderer="pool", num_envs=size, frame_skip=kw["frame_skip"],
-        frame_stack=frame_stack, image_size=(h, w), camera=opts.get("camera", 0),
-        seed=proto.config["seed"], copy_obs=False,
-        render_pool=pool.rows(g * size, (g + 1) * size)))
-        for g in range(len(groups))]
-    low = np.asarray(envs[0].single_action_space.low, np.float32)
-    high = np.asarray(envs[0].single_action_space.high, np.float32)
+    envs = {}
+    for j, (m, size, n) in enumerate(keys):
+      moving, intensity = plan.motions[m]
+      envs[(m, size, n)] = stack.enter_context(make(
+          proto.task, renderer="pool", num_envs=size, frame_skip=kw["frame_skip"],
+          frame_stack=frame_stack, image_size=(h, w), camera=opts.get("camera", 0),
+          seed=proto.config["seed"], copy_obs=False, moving=moving or None,
+          intensity=intensity, render_pool=pool.rows(int(starts[j]), int(starts[j + 1]))))
+    first = next(iter(envs.values()))
+    low = np.asarray(first.single_action_space.low, np.float32)
+    high = np.asarray(first.single_action_space.high, np.float32)
 
     def act(env, obs, index, t):
       actions, worst = _pool_act(params, obs, index, np.int32(t), key, low, high,
@@ -139,15 +190,20 @@ def pool_runner(proto, params, key):
       env.step_async(np.asarray(actions))
 
     def run_block(inputs):
-      varies = [proto.plan.varies[i] for i in inputs["vary_index"]]
+      varies = [plan.varies[i] for i in inputs["vary_index"]]
+      groups = layout(inputs["motion_index"])
+      block_envs = [envs[e] for e in _env_keys(groups)]
       index, obs = [], []
-      for env, (rows, _) in zip(envs, groups):
-        env.set_looks(inputs["seeds"][rows], [varies[i] for i in rows])
+      for env, (m, rows, _) in zip(block_envs, groups):
+        if plan.motions[m][0]:    # a moving condition's looks: all of one vary
+          env.set_visuals(inputs["seeds"][rows], vary=varies[rows[0]])
+        else:
+          env.set_looks(inputs["seeds"][rows], [varies[i] for i in rows])
         obs.append(env.reset(seed=inputs["resets"][rows])[0])
         index.append(jnp.asarray(inputs["index"][rows]))
-      last = run_pipelined(envs, obs, index, act, proto.episode_length)
+      last = run_pipelined(block_envs, obs, index, act, proto.episode_length)
       out = np.empty(len(inputs["index"]), np.float64)
-      for (truncated, info), (rows, real) in zip(last, groups):
+      for (truncated, info), (_, rows, real) in zip(last, groups):
         if not truncated.all():
           raise RuntimeError("episodes did not all end together; the env's episode "
                              "length is off")

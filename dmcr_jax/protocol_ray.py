@@ -7,7 +7,9 @@ policy (`protocol_policy.policy_actions`) and steps the physics (`episode_step`,
 without the reset branch: no env resets inside a block). `_ray_block_jit` is that
 program jitted (one compilation per policy and sizes); `_pixel_env` the
 `jax_env.PixelEnv` without looks it renders with; `render_chunk` and
-`render_padding` keep the render one vmapped chunk program of one size.
+`render_padding` keep the render one vmapped chunk program of one size. Moving
+conditions share the program: each env moves its own factors at its own intensity
+(`step_looks`), so one compilation serves every static and moving condition.
 """
 
 from __future__ import annotations
@@ -33,6 +35,41 @@ def block_looks(maker, masks: jax.Array, seeds: jax.Array):
   """
   looks = jax.vmap(lambda m, s: maker.replace(mask=m)(s[None]))(masks, seeds)
   return jax.tree.map(lambda x: x[:, 0], looks)
+
+
+def block_params(maker, masks: jax.Array, seeds: jax.Array):
+  """Each env's static `VisualParams`: its visual seed under its own factor mask
+  (what `block_looks` makes its looks from; moving looks move them each step).
+
+  Args: as for `block_looks`.
+
+  Returns:
+    The `VisualParams` of the N envs (leading axis N).
+  """
+  params = jax.vmap(lambda m, s: maker.replace(mask=m).params(s[None]))(masks, seeds)
+  return jax.tree.map(lambda x: x[:, 0], params)
+
+
+def step_looks(maker, params, t: jax.Array, moving: tuple[str, ...], motion):
+  """Each env's `DeviceLook` at agent step `t` of its episode, its own factors moving
+  (`visuals.moving.look_at_each`): what `dmcr_jax.make(..., moving=F, intensity=I)`
+  draws at that step for an env with F and I.
+
+  Args:
+    maker: the domain's `LookMaker`.
+    params: the N envs' static `VisualParams` (`block_params`).
+    t: int32 scalar, the episode step.
+    moving: static; the factors any env moves (`Plan.moving`).
+    motion: (bool (N, len(moving)) which of them each env moves, float32 (N,)
+      each env's intensity).
+
+  Returns:
+    The `DeviceLook` of the N envs.
+  """
+  from dmcr_jax.visuals.moving import look_at_each
+  on, intensity = motion
+  return maker.device_look(look_at_each(params, t, moving, on, intensity,
+                                         num_backgrounds=maker.num_backgrounds))
 
 
 def episode_step(task, frame_skip: int, physics, actions: jax.Array):
@@ -83,18 +120,23 @@ def _pad(tree, extra: int):
       [x, jnp.broadcast_to(x[:1], (extra,) + x.shape[1:])]), tree)
 
 
-def _ray_block(penv, params, seeds, masks, resets, index, key, *, policy, agents, steps):
+def _ray_block(penv, params, seeds, masks, resets, index, key, motion=None, *, policy,
+               agents, steps, moving=()):
   """One block of the ray caster's pass: looks, reset, `steps` agent steps.
 
   Each scan step renders the envs' frames, stacks them, asks the policy and
   steps the physics (`episode_step`: `steps` is the episode length, so no env
   resets inside the block); a frame is rendered once, at one place in the
   program. The stacks and returns are those of `jax_env.PixelEnv` stepped from
-  `start` (the first stack is the first frame repeated).
+  `start` (the first stack is the first frame repeated). Static looks (`moving`
+  empty) are made once per block; with `moving`, each step's looks are made from
+  the envs' static looks and the step (`step_looks`), each env moving its own
+  factors (none: its static look).
 
   Args: the block's envs' int32 visual seeds (N,), bool factor masks (N, 7),
   uint32 reset seeds (N,), int32 episode indices (N,); `penv` a `PixelEnv` of N
-  envs without looks, its frames padded by `render_padding`; `key` the policy key.
+  envs without looks, its frames padded by `render_padding`; `key` the policy key;
+  `motion` and `moving` as for `step_looks` (None and (): no env moves).
 
   Returns:
     (episode returns float32 (N,), `worst_action` float32 (K,) over the episode).
@@ -102,13 +144,18 @@ def _ray_block(penv, params, seeds, masks, resets, index, key, *, policy, agents
   from dmcr_jax import physics_env
   n, k = penv.num_envs, agents or 1
   extra = render_padding(penv)
-  looks = _pad(block_looks(penv.maker, masks, seeds), extra)
+  if moving:
+    static = block_params(penv.maker, masks, seeds)
+    looks_at = lambda t: _pad(step_looks(penv.maker, static, t, moving, motion), extra)
+  else:
+    looks = _pad(block_looks(penv.maker, masks, seeds), extra)
+    looks_at = lambda t: looks
   physics = physics_env.init(penv.task, seeds, jax.vmap(jax.random.key)(resets), n)
   low, high = penv.task.action_low, penv.task.action_high
 
   def body(carry, t):
     physics, obs, worst = carry
-    frame = penv.draw(_pad(penv.render_inputs(physics), extra), looks)[:n]
+    frame = penv.draw(_pad(penv.render_inputs(physics), extra), looks_at(t))[:n]
     obs = jnp.where(t == 0, jnp.tile(frame, (1, 1, 1, penv.frame_stack)),
                     jnp.concatenate([obs[..., 3:], frame], axis=-1))
     actions = policy_actions(policy, params, obs, index, t, key, agents)
@@ -126,7 +173,7 @@ def _ray_block(penv, params, seeds, masks, resets, index, key, *, policy, agents
 @functools.cache
 def _ray_block_jit():
   from dmcr_jax.models.base import physics_jit
-  return physics_jit(_ray_block, static_argnames=("policy", "agents", "steps"))
+  return physics_jit(_ray_block, static_argnames=("policy", "agents", "steps", "moving"))
 
 
 @functools.lru_cache(maxsize=8)

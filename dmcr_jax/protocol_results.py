@@ -63,7 +63,9 @@ class Results:
   def summary(self) -> dict:
     """The results as `dmcr_jax.protocol_report`'s summary (E_G NaN where undefined):
     per agent ("agents") its train return and each condition's mean, std,
-    episodes and E_G; "mean" over agents; the protocol's config and seeds."""
+    episodes and E_G (a moving condition's cell also its "factor" and
+    "intensity"); "moving": those of every moving condition; "mean" over agents;
+    the protocol's config and seeds."""
     from dmcr_jax import protocol_report
     agents = []
     for k, label in enumerate(self.labels):
@@ -76,13 +78,16 @@ class Results:
         row["conditions"][c] = dict(mean=float(r.mean()), std=float(r.std()),
                                     episodes=r.tolist(),
                                     e_g=generalization_error(row["train"]["mean"],
-                                                             float(r.mean())))
+                                                             float(r.mean())),
+                                    **_moving_fields(c))
       agents.append(row)
     out = dict(task=self.task, conditions=list(self.conditions), config=dict(self.config),
                test_visual_seeds=self.test_visual_seeds.tolist(),
                train_look=", ".join(dict.fromkeys(self.train_looks)), device=self.device,
                wall_s=self.wall_s, compile_s=self.compile_s, agent_steps=self.agent_steps,
                agents=agents)
+    out["moving"] = [dict(condition=c, **_moving_fields(c)) for c in self.conditions
+                     if _moving_fields(c)]
     out["mean"] = protocol_report.mean_row(agents, self.conditions)
     out["augs"] = protocol_report.aug_groups(out)
     return out
@@ -108,3 +113,10 @@ class Results:
     summary = self.summary()
     protocol_report.write(summary, out_dir)
     return summary
+
+
+def _moving_fields(condition: str) -> dict:
+  """{"factor", "intensity"} of a moving condition (`protocol_plan.moving_of`), else {}."""
+  from dmcr_jax.protocol_plan import moving_of
+  m = moving_of(condition)
+  return {} if m is None else dict(factor=m[0], intensity=m[1])
