@@ -90,6 +90,20 @@ def _group_word(summary: dict) -> str:
   return "augmentation" if any("aug" in r for r in summary["agents"]) else "policy"
 
 
+def split_conditions(conditions) -> tuple[list[str], list[tuple[str, str, float]]]:
+  """The static conditions, and the moving ones as (name, factor, intensity)
+  (``moving-<factor>@<intensity>``, `protocol_plan.moving_of`), each in order."""
+  from dmcr_jax.protocol_plan import moving_of
+  static = [c for c in conditions if moving_of(c) is None]
+  return static, [(c,) + moving_of(c) for c in conditions if moving_of(c) is not None]
+
+
+def _moving_grid(moving):
+  """(factors, intensities) of the moving conditions, each in first-seen order."""
+  return (list(dict.fromkeys(f for _, f, _ in moving)),
+          list(dict.fromkeys(i for _, _, i in moving)))
+
+
 def _render_words(cfg: dict) -> str:
   if cfg.get("renderer", "pool") == "jax":
     return "rendered by the JAX ray caster"
@@ -103,7 +117,7 @@ def markdown(summary: dict) -> str:
   several, if one has several seeds); the paper's row for each method it has. A second table gives E_G per
   condition for those means and the paper's rows, augmentations side by side.
   """
-  conditions = summary["conditions"]
+  conditions, moving = split_conditions(summary["conditions"])
   cfg = summary["config"]
   groups = summary.get("augs") or aug_groups(summary)
   head = ["agent", "train"] + conditions + ["E_G (all)" if "all" in conditions else "E_G"]
@@ -117,7 +131,7 @@ def markdown(summary: dict) -> str:
            f"{_render_words(cfg)}; E_G = (train − test) / train. Wall time "
            f"{summary['wall_s']:.0f} s.", "",
            "| " + " | ".join(head) + " |", "|---|" + "---:|" * (len(head) - 1)]
-  last = "all" if "all" in conditions else conditions[-1]
+  last = "all" if "all" in conditions else conditions[-1] if conditions else None
   pct = lambda e: f"{100 * e:.1f} %" if e is not None and np.isfinite(e) else "–"
 
   def line(label, train, means, e_g):
@@ -135,14 +149,15 @@ def markdown(summary: dict) -> str:
     means = {c: r["conditions"][c]["mean"] for c in conditions}
     label = (f"seed {r['seed']}, " if "seed" in r else "") + _label(r)
     label += f", {r['train_look']}" if ranges else ""
-    lines.append(line(label, r["train"]["mean"], means, r["conditions"][last]["e_g"]))
+    lines.append(line(label, r["train"]["mean"], means,
+                      r["conditions"][last]["e_g"] if last else None))
   if len(groups) == 1 and len(summary["agents"]) > 1 and not ranges:
     m = summary["mean"]
-    lines.append(line("**mean**", m["train"], m["conditions"], m["e_g"][last]))
+    lines.append(line("**mean**", m["train"], m["conditions"], m["e_g"].get(last)))
   elif 1 < len(groups) < len(summary["agents"]):
     for g in groups:
       lines.append(line(f"**{g['label']}** (mean of {len(g['agents'])})", g["train"],
-                        g["conditions"], g["e_g"][last]))
+                        g["conditions"], g["e_g"].get(last)))
   papers = list({g["method"]: g for g in groups if g["paper"] is not None}.values())
   lines += [paper_line(g) for g in papers]
   if papers:
@@ -164,7 +179,44 @@ def markdown(summary: dict) -> str:
     cells = [f"paper, {g['method']}", f"{row['returns']['none']:.1f}"]
     cells += [pct(row["e_g"].get(c)) for c in conditions]
     lines.append("| " + " | ".join(cells) + " |")
+  if moving:
+    lines += [""] + moving_markdown(summary, groups)
   return "\n".join(lines) + "\n"
+
+
+def moving_markdown(summary: dict, groups: list[dict] | None = None) -> list[str]:
+  """The moving conditions' tables (lines): mean return per agent and intensity with
+  a column per moving factor ("all": every factor moving), then E_G per group and
+  intensity; each row says its intensity, each column its factor."""
+  _, moving = split_conditions(summary["conditions"])
+  groups = groups or summary.get("augs") or aug_groups(summary)
+  factors, levels = _moving_grid(moving)
+  name = {(f, i): c for c, f, i in moving}
+  cell = lambda values, f, i, fmt: fmt(values[name[(f, i)]]) if (f, i) in name else "–"
+  pct = lambda e: f"{100 * e:.1f} %" if e is not None and np.isfinite(e) else "–"
+  ranges = _several_ranges(summary)
+  lines = ["Moving distractions: dm_control's look with one factor moving within each "
+           "episode (`all`: every factor), the held-out visual seed picking its motion, "
+           "at each intensity (the fraction of each factor's range, as the Distracting "
+           "Control Suite's difficulty; `moving-<factor>@<intensity>`); mean return:", "",
+           "| " + " | ".join(["agent", "intensity", "train"] + factors) + " |",
+           "|---|---:|---:|" + "---:|" * len(factors)]
+  for r in summary["agents"]:
+    label = (f"seed {r['seed']}, " if "seed" in r else "") + _label(r)
+    label += f", {r['train_look']}" if ranges else ""
+    means = {c: r["conditions"][c]["mean"] for c, _, _ in moving}
+    for i in levels:
+      lines.append("| " + " | ".join([label, f"{i:g}", f"{r['train']['mean']:.1f}"]
+                                     + [cell(means, f, i, lambda v: f"{v:.1f}")
+                                        for f in factors]) + " |")
+  lines += ["", "E_G per moving condition (mean return of each group of agents):", "",
+            "| " + " | ".join([_group_word(summary), "intensity"] + factors) + " |",
+            "|---|---:|" + "---:|" * len(factors)]
+  for g in groups:
+    for i in levels:
+      lines.append("| " + " | ".join([g["label"], f"{i:g}"]
+                                     + [cell(g["e_g"], f, i, pct) for f in factors]) + " |")
+  return lines
 
 
 def plot(summary: dict, png_path: str) -> None:
@@ -173,15 +225,18 @@ def plot(summary: dict, png_path: str) -> None:
   import matplotlib
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt
-  conditions = summary["conditions"]
+  conditions, moving = split_conditions(summary["conditions"])
   groups = summary.get("augs") or aug_groups(summary)
   columns = ["train"] + list(conditions)
   x = np.arange(len(columns))
   width = 0.8 / len(groups)
   colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-  fig, (ax, ax_e) = plt.subplots(1, 2, figsize=(2.0 + 1.5 * len(columns), 3.8),
-                                 gridspec_kw=dict(width_ratios=(len(columns),
-                                                                len(conditions))))
+  rows = 2 if moving else 1
+  fig, axes = plt.subplots(rows, 2, figsize=(2.0 + 1.5 * max(len(columns), 4), 3.8 * rows),
+                           gridspec_kw=dict(width_ratios=(len(columns),
+                                                          max(len(conditions), 1))),
+                           squeeze=False)
+  (ax, ax_e) = axes[0]
   drawn_papers = set()
   for k, g in enumerate(groups):
     color, dx = colors[k % len(colors)], (k - (len(groups) - 1) / 2) * width
@@ -214,9 +269,38 @@ def plot(summary: dict, png_path: str) -> None:
   ax_e.axhline(0, color="k", lw=0.8)
   ax_e.set_ylabel("E_G = (train − test) / train")
   ax_e.set_title("generalisation error (×: paper)", fontsize=10)
+  if moving:
+    _plot_moving(summary, groups, moving, axes[1], colors)
   fig.tight_layout()
   fig.savefig(png_path, dpi=100, bbox_inches="tight")
   plt.close(fig)
+
+
+def _plot_moving(summary: dict, groups: list[dict], moving, axes, colors) -> None:
+  """Mean return and E_G against intensity, a line per (group, moving factor);
+  "none" (where run) drawn at intensity 0, where every moving condition starts."""
+  factors, _ = _moving_grid(moving)
+  styles = ["-", "--", ":", "-."]
+  ax, ax_e = axes
+  for k, g in enumerate(groups):
+    for j, f in enumerate(factors):
+      pts = sorted((i, c) for c, ff, i in moving if ff == f)
+      xs, cs = [i for i, _ in pts], [c for _, c in pts]
+      ys, es = [g["conditions"][c] for c in cs], [g["e_g"][c] for c in cs]
+      if "none" in g["conditions"] and 0.0 not in xs:
+        xs, ys, es = [0.0] + xs, [g["conditions"]["none"]] + ys, [g["e_g"]["none"]] + es
+      style = dict(color=colors[j % len(colors)], ls=styles[k % len(styles)], marker="o",
+                   ms=3, lw=2 if f == "all" else 1)
+      ax.plot(xs, ys, label=f if len(groups) == 1 else f"{f}, {g['label']}", **style)
+      ax_e.plot(xs, es, **style)
+  ax.set_xlabel("intensity")
+  ax_e.set_xlabel("intensity")
+  ax.set_ylabel("mean episode return")
+  ax_e.set_ylabel("E_G = (train − test) / train")
+  ax_e.axhline(0, color="k", lw=0.8)
+  ax.set_title(f"{summary['task']}: moving distractions (0: none)", fontsize=10)
+  ax_e.set_title("E_G, moving", fontsize=10)
+  ax.legend(fontsize=7, ncol=2)
 
 
 def few_shot_rows(summary: dict) -> list[dict]:

@@ -7,7 +7,10 @@ For a `train` run, each agent's greedy policy (tanh of the mean action,
 visual condition over `visual_seeds` held-out looks × `dynamics_seeds` initial
 states each (paper: 100 × 3 = 300 episodes): "none" (nothing varied), one factor at
 a time (light, camera, body, floor, then background, target and reflectance where
-they apply to the domain) and "all". Conditions change factors away from
+they apply to the domain) and "all"; with `--moving-intensities` (or
+``moving-<factor>@<intensity>`` names in `--conditions`) also moving conditions,
+dm_control's look with one factor (or all) moving within each episode
+(`dmcr_jax.protocol_plan.parse_condition`). Conditions change factors away from
 dm_control's default look, as in the paper, whose agents trained on it (visual
 seed 0). Test looks are drawn from the held-out `dmcr_jax.TEST_SEEDS`, which no
 training range can overlap, with a NumPy generator seeded by `EvalConfig.seed`.
@@ -37,6 +40,7 @@ arguments: finished blocks wait in the output folder's `progress.npz`.
 
     dmcr-evaluate runs/cartpole-balance-drq            # or: python -m dmcr_jax.train.evaluate …
     dmcr-evaluate runs/cartpole-balance-drq --invariance --attention --video
+    dmcr-evaluate runs/walker-walk --renderer jax --moving-intensities 0.1,0.2,0.3
 """
 
 from __future__ import annotations
@@ -53,8 +57,8 @@ import numpy as np
 from dmcr_jax import protocol
 from dmcr_jax.checks import positive_int
 from dmcr_jax.env_checks import default_frame_skip
-from dmcr_jax.protocol import (PROGRESS_FILE, conditions_for, generalization_error,
-                               held_out_seeds)
+from dmcr_jax.protocol import (PROGRESS_FILE, check_conditions, conditions_for,
+                               generalization_error, held_out_seeds)
 from dmcr_jax.protocol_report import aug_groups, few_shot_markdown, few_shot_rows, markdown, write
 from dmcr_jax.train import loop, paper_results, sac
 
@@ -83,6 +87,9 @@ class EvalConfig:
       not equal; `quality`, `workers` and `egl_devices` do not apply).
     max_envs: at most this many envs per block (all agents' together); None:
       every episode in one block (`dmcr_jax.protocol.prepare`).
+    moving_intensities: also every moving condition (each moving factor of the
+      domain, then "all", ``moving-<factor>@<intensity>``) at each of these
+      intensities (docs/protocol.md); () none.
   """
   visual_seeds: int = 100
   dynamics_seeds: int = 3
@@ -94,6 +101,7 @@ class EvalConfig:
   egl_devices: tuple[int, ...] | None = None
   renderer: str = "pool"
   max_envs: int | None = None
+  moving_intensities: tuple[float, ...] = ()
 
 
 def check_eval_config(cfg: EvalConfig, task: str) -> tuple[str, ...]:
@@ -110,13 +118,7 @@ def check_eval_config(cfg: EvalConfig, task: str) -> tuple[str, ...]:
     positive_int("workers", cfg.workers)
   if cfg.max_envs is not None:
     positive_int("max_envs", cfg.max_envs)
-  valid = conditions_for(task)
-  conditions = valid if cfg.conditions is None else tuple(cfg.conditions)
-  bad = [c for c in conditions if c not in valid]
-  if bad or not conditions:
-    raise ValueError(f"conditions {bad or conditions!r} are not valid for {task}; valid: "
-                     f"{', '.join(valid)}")
-  return conditions
+  return check_conditions(task, cfg.conditions, cfg.moving_intensities)
 
 
 def render_options(cfg: EvalConfig) -> dict:
@@ -204,7 +206,8 @@ def evaluate(run_dir: str, cfg: EvalConfig = EvalConfig(), out_dir: str | None =
                  test_visual_seeds=summary["test_visual_seeds"],
                  train_look=str(train_cfg.visual_seeds), agents=summary["agents"],
                  wall_s=result.wall_s, compile_s=result.compile_s,
-                 agent_steps=result.agent_steps, mean=summary["mean"])
+                 agent_steps=result.agent_steps, moving=summary["moving"],
+                 mean=summary["mean"])
   summary["augs"] = aug_groups(summary)
   write(summary, out_dir, few_shot=len(loop.parse_visual_seeds(train_cfg.visual_seeds)) > 1)
   return summary
@@ -253,6 +256,16 @@ def check_run(run_dir: str, agents: list[int] | None) -> loop.TrainConfig:
   return train_cfg
 
 
+def intensities_arg(text: str) -> tuple[float, ...]:
+  """--moving-intensities: comma-separated numbers ("0.1,0.2,0.3"); their range is
+  checked with the conditions (`protocol_plan.check_conditions`)."""
+  try:
+    return tuple(float(x) for x in text.split(",") if x.strip())
+  except ValueError:
+    raise argparse.ArgumentTypeError(f"comma-separated numbers in [0, 1] such as 0.1,0.2,0.3, "
+                                     f"got {text!r}") from None
+
+
 def main(argv=None) -> None:
   """`dmcr-evaluate RUN_DIR [options]`."""
   from dmcr_jax.visuals.tiled import QUALITY
@@ -270,7 +283,13 @@ def main(argv=None) -> None:
   p.add_argument("--seed", type=int, default=d.seed,
                  help="seeds the held-out looks and the initial states")
   p.add_argument("--conditions", default=None,
-                 help="comma-separated (default: every condition that applies)")
+                 help="comma-separated (default: every static condition that applies); "
+                      "static names (none, floor, all, ...) or moving ones, "
+                      "moving-<factor>@<intensity> (e.g. moving-camera@0.2, moving-all@0.1)")
+  p.add_argument("--moving-intensities", type=intensities_arg, default=(), metavar="I[,I…]",
+                 help="also every moving condition (each moving factor, then all) at each "
+                      "intensity, e.g. 0.1,0.2,0.3 (the Distracting Control Suite's "
+                      "difficulties)")
   p.add_argument("--agents", default=None, help="comma-separated agent indices (default: all)")
   p.add_argument("--quality", default=d.quality, metavar="{" + ",".join(QUALITY) + "}",
                  help="render preset (--renderer pool)")
@@ -302,7 +321,7 @@ def main(argv=None) -> None:
     cfg = EvalConfig(visual_seeds=a.visual_seeds, dynamics_seeds=a.dynamics_seeds,
                      train_episodes=a.train_episodes, seed=a.seed, quality=a.quality,
                      workers=a.workers, egl_devices=a.egl_devices, renderer=a.renderer,
-                     max_envs=a.max_envs,
+                     max_envs=a.max_envs, moving_intensities=a.moving_intensities,
                      conditions=tuple(a.conditions.split(",")) if a.conditions else None)
     try:
       agents = [int(x) for x in a.agents.split(",")] if a.agents else None

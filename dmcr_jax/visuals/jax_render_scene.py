@@ -545,10 +545,15 @@ class LookMaker:
   def __call__(self, seeds: jax.Array, step: jax.Array | None = None) -> DeviceLook:
     """The `DeviceLook`s of int32 (N,) visual seeds (jittable; leading axis N) at
     episode steps `step` (int (N,); used when the looks move, None: step 0)."""
-    from dmcr_jax.visuals.params import FACTOR_INDEX
     if self.moves and step is None:
       step = jnp.zeros(jnp.shape(seeds), jnp.int32)
-    p = self.params(seeds, step)
+    return self.device_look(self.params(seeds, step))
+
+  def device_look(self, p) -> DeviceLook:
+    """The `DeviceLook`s of N envs' `VisualParams` (from `params`, or moved by
+    `moving.look_at_each`; jittable): the floor's colour where `p` has a
+    `floor_delta`, a second sky where it has a `background2_id`."""
+    from dmcr_jax.visuals.params import FACTOR_INDEX
     c, n = self.consts, p.seed.shape[0]
     on = lambda f: p.varied[:, FACTOR_INDEX[f]]
     sel = lambda f, x, d: jnp.where(on(f).reshape((n,) + (1,) * (x.ndim - 1)), x, d)
@@ -588,11 +593,11 @@ class LookMaker:
     light = lambda x, d: jnp.where(lm, x, d)
     lc = (on("light") & self.light_coloured)[:, None]
     extra = {}
-    if self.moves and "floor" in self.moving:
+    if p.floor_delta is not None:
       base = c["floor_rgba"][floor]
       extra["floor_rgba"] = base.at[:, :3].set(
           jnp.clip(base[:, :3] + p.floor_delta, 0.0, 1.0))
-    if self.moves and "background" in self.moving:
+    if p.background2_id is not None:
       extra.update(sky2=(p.background2_id + 1).astype(jnp.int32), sky_mix=p.background_mix)
     return DeviceLook(
         mat_rgba=mat_rgba, floor=floor.astype(jnp.int32), floor_reflectance=refl,

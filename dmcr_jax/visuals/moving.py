@@ -193,43 +193,62 @@ def _backward(quat0, rot_deg):
   return jnp.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)])
 
 
-def _one(p: dict, step, c: dict, moving: tuple[str, ...], intensity: float,
-         num_backgrounds: int) -> dict:
-  """`look_at` of one env (vmapped): `p` its static look's fields."""
+def _one(p: dict, step, c: dict, moving: tuple[str, ...], intensity,
+         num_backgrounds: int, on: dict | None = None) -> dict:
+  """`look_at` of one env (vmapped): `p` its static look's fields.
+
+  `on` None: every factor of `moving` moves (at the static `intensity`). Else
+  {factor: traced bool} per factor of `moving` and a traced `intensity`: the env
+  moves the factors it marks, and the others keep the static look's values (an
+  unmoved floor gets a zero `floor_delta`, an unmoved sky a zero `background_mix`).
+  """
   out = dict(p)
   seed, varied = p["seed"], p["varied"]
   I = jnp.float32(intensity)
+  pick = (lambda f, new, old: new) if on is None else (
+      lambda f, new, old: jnp.where(on[f], new, old))
   if "camera" in moving:
     x = wave(seed, "camera", 4, step)
     rot = p["cam_rot"] + jnp.stack([x[0], x[1], x[2]]) * (MAX_ANGLE * I)
     zoom = 1 + I * jnp.where(x[3] >= 0, ZOOM_OUT * x[3], ZOOM_IN * x[3])
     d = c["distance"]
     look = p["cam_pos"] - d * _backward(c["cam_quat"], p["cam_rot"])
-    out["cam_pos"] = look + (zoom * d) * _backward(c["cam_quat"], rot)
-    out["cam_rot"] = rot
-    varied = varied.at[FACTOR_INDEX["camera"]].set(True)
+    out["cam_pos"] = pick("camera", look + (zoom * d) * _backward(c["cam_quat"], rot),
+                          p["cam_pos"])
+    out["cam_rot"] = pick("camera", rot, p["cam_rot"])
+    i = FACTOR_INDEX["camera"]
+    varied = varied.at[i].set(pick("camera", True, varied[i]))
   if "light" in moving:
     x = wave(seed, "light", 6, step)
     for j, name in enumerate(("headlight_ambient", "headlight_diffuse", "headlight_specular")):
-      out[name] = jnp.clip(p[name] + x[j] * I, 0.0, 1.0)
+      out[name] = pick("light", jnp.clip(p[name] + x[j] * I, 0.0, 1.0), p[name])
     pos = p["light_pos"] + x[3:6] * I * c["light_half"]   # half-width 0: no light moves
-    out["light_pos"] = jnp.where(c["light_moves"], pos, p["light_pos"])
-    out["light_dir"] = jnp.where(c["light_moves"], c["light_aim"] - pos, p["light_dir"])
-    varied = varied.at[FACTOR_INDEX["light"]].set(True)
+    out["light_pos"] = pick("light", jnp.where(c["light_moves"], pos, p["light_pos"]),
+                            p["light_pos"])
+    out["light_dir"] = pick("light", jnp.where(c["light_moves"], c["light_aim"] - pos,
+                                               p["light_dir"]), p["light_dir"])
+    i = FACTOR_INDEX["light"]
+    varied = varied.at[i].set(pick("light", True, varied[i]))
   if "body" in moving:
     x = wave(seed, "body", 6, step)
     for name, xs in (("body_rgba", x[0:3]), ("effector_rgba", x[3:6])):
-      out[name] = p[name].at[:3].set(jnp.clip(p[name][:3] + xs * I, 0.0, 1.0))
-    varied = varied.at[FACTOR_INDEX["body"]].set(True)
+      out[name] = pick("body", p[name].at[:3].set(jnp.clip(p[name][:3] + xs * I, 0.0, 1.0)),
+                       p[name])
+    i = FACTOR_INDEX["body"]
+    varied = varied.at[i].set(pick("body", True, varied[i]))
   if "floor" in moving:
-    out["floor_delta"] = wave(seed, "floor", 3, step) * I
+    out["floor_delta"] = pick("floor", wave(seed, "floor", 3, step) * I,
+                              jnp.zeros(3, jnp.float32))
   if "background" in moving:
     t = jnp.asarray(step, jnp.int32)
     period = jnp.int32(BACKGROUND_PERIOD)
     k, phase = t // period, (t % period).astype(jnp.float32) / BACKGROUND_PERIOD
     key = jax.random.fold_in(_key(seed, "background"), k)
-    out["background2_id"] = jax.random.randint(key, (), 0, num_backgrounds, jnp.int32)
-    out["background_mix"] = I * (1 - jnp.cos(2 * math.pi * phase)) / 2
+    out["background2_id"] = pick("background",
+                                 jax.random.randint(key, (), 0, num_backgrounds, jnp.int32),
+                                 jnp.int32(0))
+    out["background_mix"] = pick("background", I * (1 - jnp.cos(2 * math.pi * phase)) / 2,
+                                 jnp.float32(0))
   out["varied"] = varied
   return out
 
@@ -264,12 +283,63 @@ def look_at(params: VisualParams, step, moving: tuple[str, ...], intensity: floa
   """
   if not moving or intensity == 0:
     return params
-  fields = {k: getattr(params, k) for k in ("seed", "varied", "cam_pos", "cam_rot",
-                                             "light_pos", "light_dir", "headlight_ambient",
-                                             "headlight_diffuse", "headlight_specular",
-                                             "body_rgba", "effector_rgba")}
   n = params.seed.shape[0]
   step = jnp.broadcast_to(jnp.asarray(step, jnp.int32), (n,))
-  out = _look_at_jit(fields, step, _consts(check_domain(params.domain)), moving=tuple(moving),
-                     intensity=float(intensity), num_backgrounds=int(num_backgrounds))
+  out = _look_at_jit(_fields(params), step, _consts(check_domain(params.domain)),
+                     moving=tuple(moving), intensity=float(intensity),
+                     num_backgrounds=int(num_backgrounds))
+  return params.replace(**out)
+
+
+_FIELDS = ("seed", "varied", "cam_pos", "cam_rot", "light_pos", "light_dir",
+           "headlight_ambient", "headlight_diffuse", "headlight_specular", "body_rgba",
+           "effector_rgba")
+
+
+def _fields(params: VisualParams) -> dict:
+  """The fields of `params` that `_one` reads."""
+  return {k: getattr(params, k) for k in _FIELDS}
+
+
+@functools.partial(jax.jit, static_argnames=("moving", "num_backgrounds"))
+def _look_at_each_jit(fields, step, consts, on, intensity, *, moving, num_backgrounds):
+  """One compilation per (moving, bank size), for every domain."""
+  def one(f, t, o, i):
+    return _one(f, t, consts, moving, i, num_backgrounds,
+                on={name: o[j] for j, name in enumerate(moving)})
+  return jax.vmap(one)(fields, step, on, intensity)
+
+
+def look_at_each(params: VisualParams, step, moving: tuple[str, ...], on, intensity, *,
+                 num_backgrounds: int = NUM_BACKGROUNDS) -> VisualParams:
+  """`look_at` with motion of each env's own: env e moves the factors of `moving` that
+  `on[e]` marks, at `intensity[e]` (jittable; one program serves envs of many moving
+  conditions, as `dmcr_jax.protocol` runs them).
+
+  An env's look equals `look_at(params[e], step[e], its factors, intensity[e])`:
+  the same computation, with every factor of `moving` it does not mark left at its
+  static value (and, where `moving` has "floor" or "background", a zero
+  `floor_delta` or `background_mix`, which draw the static floor and sky).
+
+  Args:
+    params: the N envs' static `VisualParams`.
+    step: int (N,) or scalar: each env's agent step in its episode.
+    moving: the factors any env moves, in `MOVING_FACTORS` order (static).
+    on: bool (N, len(moving)), which of them each env moves.
+    intensity: float (N,) each env's intensity in [0, 1] (an env at 0 should mark
+      no factor: `look_at` draws the static look there).
+    num_backgrounds: the sky bank's size.
+
+  Returns:
+    `VisualParams` as `look_at`'s, for every env; `params` itself when `moving` is
+    empty.
+  """
+  if not moving:
+    return params
+  n = params.seed.shape[0]
+  step = jnp.broadcast_to(jnp.asarray(step, jnp.int32), (n,))
+  out = _look_at_each_jit(_fields(params), step, _consts(check_domain(params.domain)),
+                          jnp.asarray(on, bool).reshape(n, len(moving)),
+                          jnp.broadcast_to(jnp.asarray(intensity, jnp.float32), (n,)),
+                          moving=tuple(moving), num_backgrounds=int(num_backgrounds))
   return params.replace(**out)

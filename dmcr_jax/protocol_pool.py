@@ -1,0 +1,212 @@
+"""The render pool's protocol pass: a block's envs as pipelined pool envs on the host.
+
+A pool block's K·B envs (agent-major) step as groups (`block_groups`: the
+pipelined halves of `pool_groups`, or one group per motion where the block holds
+moving conditions), each a `dmcr_jax.make` pool env (made with the group's
+`moving` and `intensity`) drawn by one shared `RenderPool`'s workers; `run_pipelined`
+steps them round robin, so that one group's physics and policy (`_pool_act`, the
+jitted policy call) run while the workers draw another's frames. `pool_runner` is the
+pass's block runner (`Protocol._pool_runner`). Returns are those of `dmcr_jax.make`'s
+env stepped by the same policy.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dmcr_jax.protocol_policy import check_actions, env_actions, policy_actions, worst_action
+
+
+@functools.partial(jax.jit, static_argnames=("policy", "agents"))
+def _pool_act(params, obs, index, t, key, low, high, *, policy, agents):
+  """The pool's policy call: (env actions float32 (N, A), `worst_action` (K,))."""
+  actions = policy_actions(policy, params, obs, index, t, key, agents)
+  return env_actions(actions, low, high), worst_action(actions, agents or 1)
+
+
+POOL_GROUPS = 2
+"""A pool block's envs step as this many groups, pipelined (`run_pipelined`): a
+group's physics and policy run while the render workers draw another's frames."""
+
+
+def pool_groups(agents: int, block: int, groups: int = POOL_GROUPS
+                ) -> list[tuple[np.ndarray, np.ndarray]]:
+  """How a pool block's K·B envs (agent-major) split into pipelined groups.
+
+  Each of `min(groups, B)` groups holds g = ceil(B / groups) consecutive episodes
+  of every agent, agent-major (so `policy_actions` sees K blocks of g); the last
+  group is padded, per agent, with copies of its own first episode.
+
+  Args:
+    agents: K.
+    block: B, envs per agent in the block.
+    groups: the most groups.
+
+  Returns:
+    Per group (rows int (K·g,) into the block's envs, real bool (K·g,) False on
+    padding).
+  """
+  n = min(groups, block)
+  g = -(-block // n)
+  out = []
+  for h in range(n):
+    j = np.arange(h * g, (h + 1) * g)
+    real = j < block
+    j = np.where(real, j, j[0])
+    rows = (np.arange(agents)[:, None] * block + j[None]).reshape(-1)
+    out.append((rows, np.tile(real, agents)))
+  return out
+
+
+def run_pipelined(envs, obs, index, act, steps: int) -> list[tuple[np.ndarray, dict]]:
+  """Steps pool envs `steps` agent steps each, round robin, so that while the
+  workers draw one env's frames another env's policy and physics run: env h's
+  frames are collected (`step_wait`), env h+1's submitted (`step_submit`), then
+  h's policy and physics dispatched (`act`). Each env's episode is what
+  `env.step` in a loop gives.
+
+  Args:
+    envs: `dmcr_jax.env.PixelVectorEnv`s, just reset.
+    obs: their first observations.
+    index: their envs' episode indices (int32 arrays).
+    act: `act(env, obs, index, t)` steps `env.step_async` with the policy's actions.
+    steps: agent steps.
+
+  Returns:
+    Per env its last step's (truncated, info).
+  """
+  g, last = len(envs), [None] * len(envs)
+  for h in range(g):
+    act(envs[h], obs[h], index[h], 0)
+  envs[0].step_submit()
+  for t in range(steps):
+    final = t + 1 == steps
+    for h in range(g):
+      o, _, _, truncated, info = envs[h].step_wait()
+      nxt = (h + 1) % g
+      if nxt != h and not (final and nxt == 0):
+        envs[nxt].step_submit()
+      if final:
+        last[h] = (truncated, info)
+        continue
+      act(envs[h], o, index[h], t + 1)
+      if nxt == h:
+        envs[h].step_submit()
+  return last
+
+
+def block_groups(agents: int, motion_index: np.ndarray, groups: int = POOL_GROUPS
+                 ) -> list[tuple[int, np.ndarray, np.ndarray]]:
+  """How a pool block's K·B envs split into groups, one pool env each.
+
+  A pool env draws one motion (`Plan.motions`: static looks, or one moving
+  condition's factors and intensity, as `dmcr_jax.make(moving=..., intensity=...)`),
+  so a block whose episodes all share a motion steps as `pool_groups`' pipelined
+  groups, and a block of several motions as one group per motion (its episodes of
+  every agent, agent-major; these groups pipeline with each other).
+
+  Args:
+    agents: K.
+    motion_index: int (B,) each episode's motion (`Plan.motion_index` of the block).
+    groups: the most groups of a one-motion block.
+
+  Returns:
+    Per group (motion index, rows int (K·g,) into the block's envs, real bool (K·g,)
+    False on padding).
+  """
+  motion_index = np.asarray(motion_index)
+  block = len(motion_index)
+  motions = list(dict.fromkeys(motion_index.tolist()))
+  if len(motions) == 1:
+    return [(motions[0], rows, real) for rows, real in pool_groups(agents, block, groups)]
+  out = []
+  for m in motions:
+    j = np.flatnonzero(motion_index == m)
+    rows = (np.arange(agents)[:, None] * block + j[None]).reshape(-1)
+    out.append((m, rows, np.ones(rows.size, bool)))
+  return out
+
+
+def _env_keys(layout) -> list[tuple[int, int, int]]:
+  """Per group of a block's `block_groups` its pool env: (motion, size, n-th of those)."""
+  seen: dict = {}
+  keys = []
+  for m, rows, _ in layout:
+    n = seen[(m, len(rows))] = seen.get((m, len(rows)), -1) + 1
+    keys.append((m, len(rows), n))
+  return keys
+
+
+@contextlib.contextmanager
+def pool_runner(proto, params, key):
+  """A context giving `run_block(inputs) -> returns (K·B,)` with the render pool:
+  the block's envs as `block_groups` groups, one pool env each (made once per
+  motion and size over the pass's blocks), all drawn by one `RenderPool`'s workers
+  (which stop when the context ends).
+
+  Args:
+    proto: the `protocol.Protocol` (its task, plan, sizes and render options).
+    params: the policy's params (leading axis K when `proto.agents` is K).
+    key: the pass's policy key.
+  """
+  from dmcr_jax import models
+  from dmcr_jax.env import check_camera, make
+  from dmcr_jax.visuals.render_pool import RenderPool, default_workers
+  kw, k, plan = proto.env_kwargs, proto.agents or 1, proto.plan
+  layout = lambda motion_index: block_groups(k, motion_index[:proto.block])
+  keys = list(dict.fromkeys(e for idx in proto.block_slices()
+                            for e in _env_keys(layout(plan.motion_index[idx]))))
+  starts = np.cumsum([0] + [size for _, size, _ in keys])
+  opts = dict(kw["render"])
+  check_camera(models.load(proto.task).mj_model, opts.get("camera", 0), proto.task)
+  workers = min(max(size for _, size, _ in keys),
+                opts.pop("workers", None) or default_workers())
+  (h, w), frame_stack = kw["image_size"], kw["frame_stack"]
+  with contextlib.ExitStack() as stack:
+    pool = stack.enter_context(RenderPool(proto.task, max_batch=int(starts[-1]),
+                                          height=h, width=w, workers=workers,
+                                          frame_stack=frame_stack, **opts))
+    envs = {}
+    for j, (m, size, n) in enumerate(keys):
+      moving, intensity = plan.motions[m]
+      envs[(m, size, n)] = stack.enter_context(make(
+          proto.task, renderer="pool", num_envs=size, frame_skip=kw["frame_skip"],
+          frame_stack=frame_stack, image_size=(h, w), camera=opts.get("camera", 0),
+          seed=proto.config["seed"], copy_obs=False, moving=moving or None,
+          intensity=intensity, render_pool=pool.rows(int(starts[j]), int(starts[j + 1]))))
+    first = next(iter(envs.values()))
+    low = np.asarray(first.single_action_space.low, np.float32)
+    high = np.asarray(first.single_action_space.high, np.float32)
+
+    def act(env, obs, index, t):
+      actions, worst = _pool_act(params, obs, index, np.int32(t), key, low, high,
+                                 policy=proto.policy, agents=proto.agents)
+      check_actions(np.asarray(worst))
+      env.step_async(np.asarray(actions))
+
+    def run_block(inputs):
+      varies = [plan.varies[i] for i in inputs["vary_index"]]
+      groups = layout(inputs["motion_index"])
+      block_envs = [envs[e] for e in _env_keys(groups)]
+      index, obs = [], []
+      for env, (m, rows, _) in zip(block_envs, groups):
+        if plan.motions[m][0]:    # a moving condition's looks: all of one vary
+          env.set_visuals(inputs["seeds"][rows], vary=varies[rows[0]])
+        else:
+          env.set_looks(inputs["seeds"][rows], [varies[i] for i in rows])
+        obs.append(env.reset(seed=inputs["resets"][rows])[0])
+        index.append(jnp.asarray(inputs["index"][rows]))
+      last = run_pipelined(block_envs, obs, index, act, proto.episode_length)
+      out = np.empty(len(inputs["index"]), np.float64)
+      for (truncated, info), (_, rows, real) in zip(last, groups):
+        if not truncated.all():
+          raise RuntimeError("episodes did not all end together; the env's episode "
+                             "length is off")
+        out[rows[real]] = np.asarray(info["episode_return"], np.float64)[real]
+      return out
+    yield run_block
