@@ -351,7 +351,7 @@ def prepare(task: str, policy: Policy, *, agents: int | None = None, renderer: s
     ValueError: any bad option (the message names the valid ones).
   """
   from dmcr_jax import models
-  from dmcr_jax.env import check_renderer_name, default_frame_skip
+  from dmcr_jax.env_checks import check_renderer_name, default_frame_skip
   check_renderer_name(renderer)
   if task not in models.ALL_TASKS:
     raise ValueError(f"Unknown task {task!r}; valid: {', '.join(models.ALL_TASKS)}")

@@ -155,7 +155,8 @@ def pool_runner(proto, params, key):
     key: the pass's policy key.
   """
   from dmcr_jax import models
-  from dmcr_jax.env import check_camera, make
+  from dmcr_jax.env import make
+  from dmcr_jax.env_checks import check_camera
   from dmcr_jax.visuals.render_pool import RenderPool, default_workers
   kw, k, plan = proto.env_kwargs, proto.agents or 1, proto.plan
   layout = lambda motion_index: block_groups(k, motion_index[:proto.block])
