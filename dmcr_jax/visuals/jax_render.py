@@ -71,8 +71,8 @@ from typing import Mapping
 import jax
 import jax.numpy as jnp
 
-# The door: the names below are re-exported for callers (the library's own modules
-# import them from their homes).
+# The other modules' names, used here and re-exported for callers (the library's
+# own modules import them from their homes).
 from dmcr_jax.visuals.jax_render_geometry import INF, _normal_local, _v, intersect
 from dmcr_jax.visuals.jax_render_pack import (ArrayReader, Layout, _objects, camera_frame,
                                               layout, look_layout, pack_env)
