@@ -50,8 +50,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dmcr_jax import augment
 from dmcr_jax._files import write_atomic
+from dmcr_jax.augment_core import Augmentation, _check_images, sample_keys
+from dmcr_jax.augment_registry import from_function, get
 
 CHECK_TASKS: tuple[str, ...] = ("cartpole-balance", "walker-walk", "finger-spin")
 """Tasks whose renders `check` uses: a dark and two bright scenes, thin and wide bodies."""
@@ -314,11 +315,11 @@ def conversion_problems(aug, key: jax.Array, images) -> list[str]:
 def _as_batch_aug(aug, batched: bool):
   """(name, batch callable, `Augmentation` or None) for what `check` accepts."""
   if isinstance(aug, str):
-    aug = augment.get(aug)
+    aug = get(aug)
   elif not batched:
-    aug = augment.from_function(aug)
+    aug = from_function(aug)
   name = getattr(aug, "name", getattr(aug, "__name__", type(aug).__name__))
-  return name, aug, aug if isinstance(aug, augment.Augmentation) else None
+  return name, aug, aug if isinstance(aug, Augmentation) else None
 
 
 def _first_difference(a, b) -> str:
@@ -374,7 +375,7 @@ def check(aug: Any, *, size: int = 32, batched: bool = False, raise_error: bool 
   if obs is None:
     obs, next_obs = observations(size)
   obs, next_obs = jnp.asarray(obs), jnp.asarray(next_obs)
-  augment._check_images((obs, next_obs))
+  _check_images((obs, next_obs))
   key = jax.random.key(seed)
   stack = obs.shape[-1] // 3
   compiled = jax.jit(fn)
@@ -439,7 +440,7 @@ def check(aug: Any, *, size: int = 32, batched: bool = False, raise_error: bool 
       if diff:
         return f"jax.vmap over agents, agent {a} against its own call: {diff}"
     if single is not None:
-      per = key if single.per_batch else augment.sample_keys(key, obs.shape[0])
+      per = key if single.per_batch else sample_keys(key, obs.shape[0])
       one = jax.jit(single.one)
       for i in range(obs.shape[0]):
         diff = _first_difference(out["y"][i], one(per if single.per_batch else per[i],

@@ -72,12 +72,12 @@ def gallery(obs, names=None, samples: int = 4, seed: int = 5):
   import jax
   import numpy as np
 
-  from dmcr_jax import augment
+  from dmcr_jax.augment_registry import NAMES, get
 
-  names = augment.NAMES if names is None else names
+  names = NAMES if names is None else names
   key = jax.random.key(seed)
   return [(name, np.concatenate([
-      np.asarray(augment.get(name)(jax.random.fold_in(key, i), obs[None]))
+      np.asarray(get(name)(jax.random.fold_in(key, i), obs[None]))
       for i in range(samples)])) for name in names]
 
 

@@ -32,8 +32,9 @@ import jax
 import jax.numpy as jnp
 from jax.experimental import pallas as pl
 
-from dmcr_jax.visuals import jax_render as JR
+from dmcr_jax.visuals.jax_render_pack import Layout, look_layout, pack_env
 from dmcr_jax.visuals.jax_render_scene import BodyPoses, DeviceLook, Scene
+from dmcr_jax.visuals.jax_render_trace import image_from_planes, trace_pixels
 
 BLOCK = 128
 """Pixels per kernel program (a power of two, as Triton's blocks must be)."""
@@ -75,7 +76,7 @@ def _compiler_params(num_warps: int):
   return pl_triton.CompilerParams(num_warps=num_warps, num_stages=1)
 
 
-def trace_batch(layout: JR.Layout, floats: jax.Array, ints: jax.Array, texels: jax.Array,
+def trace_batch(layout: Layout, floats: jax.Array, ints: jax.Array, texels: jax.Array,
                 skies: jax.Array, *, height: int, width: int, shadows: bool,
                 reflection: bool, supersample: int = 1, block: int = BLOCK,
                 num_warps: int = NUM_WARPS, skip_empty: bool = SKIP_EMPTY,
@@ -109,10 +110,10 @@ def trace_batch(layout: JR.Layout, floats: jax.Array, ints: jax.Array, texels: j
     start = blk * block
     pix = start + jnp.arange(block, dtype=jnp.int32)
     reader = RefReader(env, floats_ref, ints_ref, texels_ref, skies_ref)
-    (r, g, b), seg = JR.trace_pixels(layout, reader, pix, height=height, width=width,
-                                     shadows=shadows, reflection=reflection,
-                                     supersample=supersample, running=True,
-                                     skip_empty=skip_empty)
+    (r, g, b), seg = trace_pixels(layout, reader, pix, height=height, width=width,
+                                  shadows=shadows, reflection=reflection,
+                                  supersample=supersample, running=True,
+                                  skip_empty=skip_empty)
     at = (env, pl.ds(start, block))
     r_ref[at] = r
     g_ref[at] = g
@@ -140,11 +141,11 @@ def render_batch(scene: Scene, bp: BodyPoses, look: DeviceLook,
     height, width, shadows, reflection, supersample: as `jax_render.render`.
     block, num_warps, skip_empty, interpret: as `trace_batch`.
   """
-  pack = jax.vmap(JR.pack_env, in_axes=(None, 0, 0, 0 if variables else None))
+  pack = jax.vmap(pack_env, in_axes=(None, 0, 0, 0 if variables else None))
   floats, ints = pack(scene, bp, look, variables or None)
-  colour, _ = trace_batch(JR.look_layout(scene, look), floats, ints, scene.floor_texels.reshape(-1),
+  colour, _ = trace_batch(look_layout(scene, look), floats, ints, scene.floor_texels.reshape(-1),
                           scene.skies.reshape(-1), height=height, width=width,
                           shadows=shadows, reflection=reflection, supersample=supersample,
                           block=block, num_warps=num_warps, skip_empty=skip_empty,
                           interpret=interpret)
-  return JR.image_from_planes(colour, height, width, supersample)
+  return image_from_planes(colour, height, width, supersample)

@@ -58,7 +58,7 @@ from dmcr_jax.models.names import obj_id, suite_model
 from dmcr_jax.visuals import ranges as R
 from dmcr_jax.visuals.factors import APPLICABLE, FACTOR_IDS, FACTOR_INDEX, check_domain
 from dmcr_jax.visuals.params import VisualParams
-from dmcr_jax.visuals.textures import NUM_BACKGROUNDS
+from dmcr_jax.visuals.texture_spec import NUM_BACKGROUNDS
 
 MOVING_FACTORS: tuple[str, ...] = ("camera", "light", "body", "floor", "background")
 """The factors that can move within an episode, in this (canonical) order."""

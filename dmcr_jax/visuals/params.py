@@ -42,7 +42,7 @@ from dmcr_jax.models.names import obj_id, suite_model
 from dmcr_jax.visuals import ranges as R
 from dmcr_jax.visuals.factors import (FACTOR_IDS, FACTOR_INDEX, FACTORS, active_factors,
                                       check_domain)
-from dmcr_jax.visuals.textures import NUM_BACKGROUNDS, NUM_FLOORS
+from dmcr_jax.visuals.texture_spec import NUM_BACKGROUNDS, NUM_FLOORS
 
 MAX_SEED = 2**31 - 1
 # Words drawn per factor stream (fixed, so a factor's values never depend on
