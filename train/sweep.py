@@ -514,11 +514,11 @@ def main(argv=None) -> None:
   if a.dry_run:
     for run in runs:
       print(f"{run.name} [{run.state()}]: {run.command()}")
-    print(f"{len(runs)} runs in {out}")
     for task, looks in few_shot_tasks(runs).items():
       print(f"few-shot curve of {task} over looks {', '.join(looks)}: "
             f"{os.path.join(out, f'few_shot_{task}')}.md, .json and .png, once its runs "
             "are evaluated")
+    print(f"{len(runs)} runs in {out}")
     return
   result = sweep(out, runs, a.backend, cpus)
   if result["table"]:
