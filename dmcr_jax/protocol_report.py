@@ -362,7 +362,7 @@ def few_shot_figure(summary: dict, rows: list[dict]):
     a.minorticks_off()
     a.set_xlabel("training looks (visual seeds)")
   seeds = max(len(r["seeds"]) for r in rows)
-  ax.set_ylabel("test return (held-out looks)")
+  ax.set_ylabel("return (test: held-out looks; train: own looks)")
   ax_e.set_ylabel(f"E_G ({last})")
   ax.set_title(f"{summary['task']}: test return against training looks"
                + (f" (mean; band: min–max over {seeds} seeds)" if seeds > 1 else ""),
