@@ -106,15 +106,24 @@ def collect(paths: list[str]) -> list[dict]:
   """
   rows = []
   for path in paths:
-    try:
-      with open(path) as f:
-        result = json.load(f)
-    except (OSError, json.JSONDecodeError) as e:
-      raise ValueError(f"{path}: cannot read an evaluate result ({e})") from None
-    if not isinstance(result, dict) or not {"task", "agents"} <= set(result):
-      raise ValueError(f"{path}: not an evaluate result (eval.json): no task and agents")
-    rows.extend(rows_of(result, path))
+    rows.extend(rows_of(read(path), path))
   return sorted(rows, key=_sort_key)
+
+
+def read(path: str) -> dict:
+  """The `evaluate` result (eval.json) at `path`.
+
+  Raises:
+    ValueError: a path that cannot be read or is not an `evaluate` result.
+  """
+  try:
+    with open(path) as f:
+      result = json.load(f)
+  except (OSError, json.JSONDecodeError) as e:
+    raise ValueError(f"{path}: cannot read an evaluate result ({e})") from None
+  if not isinstance(result, dict) or not {"task", "agents"} <= set(result):
+    raise ValueError(f"{path}: not an evaluate result (eval.json): no task and agents")
+  return result
 
 
 def merge(runs: list[dict]) -> list[dict]:

@@ -8,6 +8,8 @@ A summary is a dict: "task", "conditions", "config" (the protocol's options),
 "episodes", "e_g"), "mean" (`mean_row`) and "augs" (`aug_groups`); a run's summary
 also has "run_dir" and "checkpoint_step". Where a row names one of the paper's
 methods, the paper's Table 4 row (`dmcr_jax.train.paper_results`) stands beside it.
+Several runs' summaries of one task and protocol merge into one (`merge_summaries`),
+whose few-shot curve spans all their ranges, augmentations and seeds.
 """
 
 from __future__ import annotations
@@ -305,14 +307,16 @@ def _plot_moving(summary: dict, groups: list[dict], moving, axes, colors) -> Non
 
 def few_shot_rows(summary: dict) -> list[dict]:
   """The generalisation curve of a few-shot run: one row per (augmentation, training
-  looks), the means over that group's agents (seeds).
+  looks), the means over that group's agents (seeds) and their spread.
 
   Returns:
     Rows sorted by augmentation then number of looks, each with "aug", "method",
     "looks" (number of training looks), "train_look", "seeds", "train" (mean
     return at the training looks), "conditions" {condition: mean test return},
-    "e_g" {condition: E_G of those means} and "all_std" (std of "all" over the
-    seeds; 0 for one seed).
+    "e_g" {condition: E_G of those means}, "train_min" / "train_max" and
+    "conditions_min" / "conditions_max" {condition: return} (the least and
+    greatest agent mean over the seeds; the mean itself for one seed) and
+    "all_std" (std of "all" over the seeds; 0 for one seed).
   """
   groups: dict[tuple, list[dict]] = {}
   for r in summary["agents"]:
@@ -320,11 +324,16 @@ def few_shot_rows(summary: dict) -> list[dict]:
   rows = []
   for (aug, looks, label), agents in sorted(groups.items(), key=lambda kv: kv[0][:2]):
     mean = mean_row(agents, summary["conditions"])
+    train = [r["train"]["mean"] for r in agents]
+    per = {c: [r["conditions"][c]["mean"] for r in agents] for c in summary["conditions"]}
     row = dict(aug=aug, method=agents[0].get("method"), looks=looks, train_look=label,
                seeds=[r["seed"] for r in agents], train=mean["train"],
-               conditions=mean["conditions"], e_g=mean["e_g"])
+               conditions=mean["conditions"], e_g=mean["e_g"],
+               train_min=float(min(train)), train_max=float(max(train)),
+               conditions_min={c: float(min(v)) for c, v in per.items()},
+               conditions_max={c: float(max(v)) for c, v in per.items()})
     if "all" in summary["conditions"]:
-      row["all_std"] = float(np.std([r["conditions"]["all"]["mean"] for r in agents]))
+      row["all_std"] = float(np.std(per["all"]))
     rows.append(row)
   return rows
 
@@ -336,34 +345,67 @@ def zero_shot_references(rows: list[dict]) -> dict[str, float]:
           if r["train_look"] in ("levels:1", "seed 0") and "all" in r["conditions"]}
 
 
+def _few_shot_source(summary: dict) -> str:
+  """What a few-shot table is of: the run, or the merged runs (`merge_summaries`),
+  with the task and checkpoint step(s)."""
+  step = summary["checkpoint_step"]
+  steps = (f"checkpoint step {step:,}" if isinstance(step, int) else
+           "checkpoint steps " + ", ".join(f"{s:,}" for s in step))
+  where = (f"`{summary['run_dir']}`" if "runs" not in summary else
+           f"{len(summary['runs'])} runs")
+  return f"{where} ({summary['task']}, {steps})"
+
+
+def _spread(mean: float, lo: float, hi: float, seeds: int) -> str:
+  """A cell: "mean" for one seed, "mean (min–max)" for several."""
+  return f"{mean:.1f}" if seeds == 1 else f"{mean:.1f} ({lo:.1f}–{hi:.1f})"
+
+
 def few_shot_markdown(summary: dict, rows: list[dict]) -> str:
   """The curve as a Markdown table: per augmentation and number of training looks,
-  the train return, each condition's test return and E_G (all)."""
+  the train return, each condition's test return (as "mean (min–max)" over the
+  seeds where a row has several) and E_G (all) of the means; a merged summary
+  (`merge_summaries`) lists its runs below."""
   conditions = summary["conditions"]
   cfg = summary["config"]
   last = "all" if "all" in conditions else conditions[-1]
   head = ["augmentation", "training looks", "seeds", "train"] + conditions + [f"E_G ({last})"]
-  lines = [f"Few-shot generalisation of `{summary['run_dir']}` ({summary['task']}, "
-           f"checkpoint step {summary['checkpoint_step']:,}): one agent per training-look "
-           f"range and seed, all tested on the same {cfg['visual_seeds']} held-out visual "
-           f"seeds × {cfg['dynamics_seeds']} initial states; train = mean return over "
-           f"{cfg['train_episodes']} episodes at looks from the agent's own range; "
-           f"{_render_words(cfg)}; means over seeds; E_G = (train − test) / train.", "",
+  spread = any(len(r["seeds"]) > 1 for r in rows)
+  lines = [f"Few-shot generalisation of {_few_shot_source(summary)}: one agent per "
+           f"training-look range and seed, all tested on the same {cfg['visual_seeds']} "
+           f"held-out visual seeds × {cfg['dynamics_seeds']} initial states; train = mean "
+           f"return over {cfg['train_episodes']} episodes at looks from the agent's own "
+           f"range; {_render_words(cfg)}; means over seeds"
+           + (" (min–max over the seeds in brackets)" if spread else "")
+           + "; E_G = (train − test) / train of the means.", "",
            "| " + " | ".join(head) + " |", "|---|---|---:|" + "---:|" * (len(head) - 3)]
   for r in rows:
-    e_g = r["e_g"][last]
-    cells = [r["method"] or r["aug"], f"{r['looks']:,} ({r['train_look']})",
-             str(len(r["seeds"])), f"{r['train']:.1f}"]
-    cells += [f"{r['conditions'][c]:.1f}" for c in conditions]
+    e_g, n = r["e_g"][last], len(r["seeds"])
+    cells = [r["method"] or r["aug"], f"{r['looks']:,} ({r['train_look']})", str(n),
+             _spread(r["train"], r["train_min"], r["train_max"], n)]
+    cells += [_spread(r["conditions"][c], r["conditions_min"][c], r["conditions_max"][c], n)
+              for c in conditions]
     cells.append(f"{100 * e_g:.1f} %" if np.isfinite(e_g) else "–")
     lines.append("| " + " | ".join(cells) + " |")
+  if "runs" in summary:
+    lines += ["", "Runs: " + ", ".join(f"`{r}`" for r in summary["runs"]) + "."]
   return "\n".join(lines) + "\n"
 
 
-def plot_few_shot(summary: dict, rows: list[dict], png_path: str) -> None:
-  """Test return per condition ("all" bold) and E_G against the number of training
-  looks (log x), one line style per augmentation; dashed: the run's zero-shot
-  "all" returns (`zero_shot_references`)."""
+def _band_style(colour: str, aug: int) -> dict:
+  """`fill_between` options of a min–max band: a light fill for the first
+  augmentation, a hatch of its own for each further one (bands of several
+  augmentations overlap)."""
+  if aug == 0:
+    return dict(color=colour, alpha=0.13, lw=0)
+  return dict(facecolor="none", edgecolor=colour, alpha=0.35, lw=0,
+              hatch=["//", "\\\\", "..", "xx"][(aug - 1) % 4])
+
+
+def few_shot_figure(summary: dict, rows: list[dict]):
+  """The matplotlib figure of `plot_few_shot` (left axes: returns; right: E_G). Each
+  min–max band is a filled area whose gid is "band CONDITION, NAME" ("train" for
+  the train return; NAME the method or augmentation)."""
   import matplotlib
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt
@@ -377,10 +419,20 @@ def plot_few_shot(summary: dict, rows: list[dict], png_path: str) -> None:
     mine = [r for r in rows if r["aug"] == aug]
     x = [r["looks"] for r in mine]
     name = mine[0]["method"] or aug
+    band = any(len(r["seeds"]) > 1 for r in mine)
+    ax.plot(x, [r["train"] for r in mine], styles[j % 4], color="grey", marker="s", ms=3,
+            lw=1.5, label="train (own looks)" if len(augs) == 1 else f"train, {name}")
+    if band:
+      ax.fill_between(x, [r["train_min"] for r in mine], [r["train_max"] for r in mine],
+                      gid=f"band train, {name}", **_band_style("grey", j))
     for c in conditions:
       ax.plot(x, [r["conditions"][c] for r in mine], styles[j % 4], color=colours[c],
               marker="o", ms=3, lw=2.5 if c == last else 1,
               label=f"{c}" if len(augs) == 1 else f"{c}, {name}")
+      if band and c == last:
+        ax.fill_between(x, [r["conditions_min"][c] for r in mine],
+                        [r["conditions_max"][c] for r in mine], gid=f"band {c}, {name}",
+                        **_band_style(colours[c], j))
     ax_e.plot(x, [r["e_g"][last] for r in mine], styles[j % 4], color="black", marker="o",
               ms=3, label=name)
   for k, (name, value) in enumerate(zero_shot_references(rows).items()):
@@ -393,30 +445,118 @@ def plot_few_shot(summary: dict, rows: list[dict], png_path: str) -> None:
                  fontsize=7, rotation=30)
     a.minorticks_off()
     a.set_xlabel("training looks (visual seeds)")
-  ax.set_ylabel("test return (held-out looks)")
+  seeds = max(len(r["seeds"]) for r in rows)
+  ax.set_ylabel("return (test: held-out looks; train: own looks)")
   ax_e.set_ylabel(f"E_G ({last})")
-  ax.set_title(f"{summary['task']}: test return against training looks", fontsize=9)
+  ax.set_title(f"{summary['task']}: test return against training looks"
+               + (f" (mean; band: min–max over {seeds} seeds)" if seeds > 1 else ""),
+               fontsize=9)
   ax_e.set_title("generalisation error (train − test) / train", fontsize=9)
   ax.legend(fontsize=6, loc="best", ncol=2)
   ax_e.legend(fontsize=7)
   fig.tight_layout()
+  return fig
+
+
+def plot_few_shot(summary: dict, rows: list[dict], png_path: str) -> None:
+  """Test return per condition ("all" bold), the train return (grey) and E_G against
+  the number of training looks (log x), one line style per augmentation; where a
+  row has several seeds, a min–max band around "all" and the train return;
+  dashed: the zero-shot "all" returns (`zero_shot_references`)."""
+  import matplotlib.pyplot as plt
+  fig = few_shot_figure(summary, rows)
   fig.savefig(png_path, dpi=100)
   plt.close(fig)
 
 
-def write_few_shot(summary: dict, out_dir: str) -> list[dict]:
-  """Writes the generalisation curve of a few-shot run's evaluation: few_shot.json
-  (rows and zero-shot references), few_shot.md and few_shot.png; returns the rows."""
+def write_few_shot(summary: dict, out_dir: str, name: str = "few_shot") -> list[dict]:
+  """Writes the generalisation curve of a few-shot evaluation (one run's summary, or
+  several runs' merged by `merge_summaries`): `<name>.json` (rows and zero-shot
+  references), `<name>.md` and `<name>.png` in `out_dir` (made); returns the rows."""
   rows = few_shot_rows(summary)
-  data = dict(task=summary["task"], run_dir=summary["run_dir"],
-              checkpoint_step=summary["checkpoint_step"], conditions=summary["conditions"],
-              rows=rows, zero_shot=zero_shot_references(rows))
-  with open(os.path.join(out_dir, "few_shot.json"), "w") as f:
+  data = dict(task=summary["task"], checkpoint_step=summary["checkpoint_step"],
+              conditions=summary["conditions"], rows=rows,
+              zero_shot=zero_shot_references(rows))
+  data.update({k: summary[k] for k in ("run_dir", "runs") if k in summary})
+  os.makedirs(out_dir, exist_ok=True)
+  with open(os.path.join(out_dir, f"{name}.json"), "w") as f:
     json.dump(json_safe(data), f, indent=1, allow_nan=False)
-  with open(os.path.join(out_dir, "few_shot.md"), "w") as f:
+  with open(os.path.join(out_dir, f"{name}.md"), "w") as f:
     f.write(few_shot_markdown(summary, rows))
-  plot_few_shot(summary, rows, os.path.join(out_dir, "few_shot.png"))
+  plot_few_shot(summary, rows, os.path.join(out_dir, f"{name}.png"))
   return rows
+
+
+PROTOCOL_OPTIONS = ("visual_seeds", "dynamics_seeds", "train_episodes", "seed", "renderer",
+                    "quality")
+"""The evaluation options (`EvalConfig` fields) that runs merged into one curve must
+share, with their conditions; the others (workers, devices, block size) change how
+the protocol runs, not what it measures."""
+
+
+def _protocol_value(summary: dict, option: str):
+  """A summary's value of a protocol option (`PROTOCOL_OPTIONS`, or "conditions":
+  the conditions it ran)."""
+  return summary["conditions"] if option == "conditions" else summary["config"].get(option)
+
+
+def merge_summaries(summaries: list[dict], sources: list[str] | None = None) -> dict:
+  """Several runs' evaluations of one task (their eval.json summaries) as one
+  summary holding every agent, for `write_few_shot` (one curve over all their
+  ranges, augmentations and seeds) and `markdown`.
+
+  Args:
+    summaries: `evaluate` summaries (eval.json), whose agents say how many looks
+      they trained on ("looks").
+    sources: each summary's name in messages and in "runs" (default: its
+      "run_dir").
+
+  Returns:
+    A summary with "runs" (the sources), "checkpoint_step" (an int, or the sorted
+    distinct steps), the first summary's "config", the shared "conditions", the
+    agents renumbered in order (each with its "run_dir"), "train_look" (the
+    ranges, comma-separated), "wall_s" (the sum), "mean" and "augs".
+
+  Raises:
+    ValueError: no summary; summaries of other tasks or of another protocol
+      (naming the option, `PROTOCOL_OPTIONS` or the conditions); an agent without
+      "looks"; the same seed of one augmentation and range in two summaries.
+  """
+  if not summaries:
+    raise ValueError("merge_summaries needs at least one evaluate summary (eval.json)")
+  sources = list(sources or [s.get("run_dir", f"summary {i}") for i, s in enumerate(summaries)])
+  first, where = summaries[0], sources[0]
+  for s, src in zip(summaries[1:], sources[1:]):
+    if s["task"] != first["task"]:
+      raise ValueError(f"{src} evaluated {s['task']} and {where} {first['task']}; a "
+                       "few-shot curve is of one task")
+    for option in PROTOCOL_OPTIONS + ("conditions",):
+      mine, theirs = _protocol_value(s, option), _protocol_value(first, option)
+      if mine != theirs:
+        raise ValueError(f"{src} was evaluated with {option} = {mine!r} and {where} with "
+                         f"{theirs!r}; one curve needs one protocol (the same "
+                         f"{', '.join(PROTOCOL_OPTIONS)} and conditions)")
+  agents, seen = [], {}
+  for s, src in zip(summaries, sources):
+    for r in s["agents"]:
+      if "looks" not in r:
+        raise ValueError(f"{src}: agent {r.get('agent')} does not say how many looks it "
+                         "trained on ('looks'); evaluate the run again with dmcr-evaluate")
+      key = (r.get("algo", "sac_aug"), r.get("aug"), r["train_look"], r.get("seed"))
+      if key in seen:
+        raise ValueError(f"seed {key[3]} of {r.get('method') or _label(r)} at {key[2]} is in {seen[key]} and in "
+                         f"{src}; pass one evaluation per seed")
+      seen[key] = src
+      agents.append(dict(r, agent=len(agents), run_dir=src))
+  steps = sorted({s["checkpoint_step"] for s in summaries})
+  merged = dict(task=first["task"], runs=sources,
+                checkpoint_step=steps[0] if len(steps) == 1 else steps,
+                config=first["config"], conditions=list(first["conditions"]),
+                train_look=",".join(dict.fromkeys(r["train_look"] for r in agents)),
+                wall_s=float(sum(s.get("wall_s", 0.0) for s in summaries)), agents=agents,
+                mean=mean_row(agents, first["conditions"]))
+  merged["augs"] = aug_groups(merged)
+  return merged
 
 
 def write(summary: dict, out_dir: str, few_shot: bool | None = None) -> None:

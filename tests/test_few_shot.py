@@ -182,6 +182,14 @@ def test_evaluate_draws_the_curve_against_training_looks(levels_run, tmp_path):
   assert "| SAC+AUG | 2 (levels:2) | 1 |" in table
   assert f"{agents[1]['conditions']['floor']['mean']:.1f}" in table
   assert matplotlib.image.imread(str(tmp_path / "few_shot.png")).shape[1] == 1000
+  # The run as two runs of one range each (eval.json as written), merged: the same curve.
+  from dmcr_jax import protocol_report
+  from tests.test_few_shot_merge import split_by_look
+  with open(tmp_path / "eval.json") as f:
+    parts = split_by_look(json.load(f))
+  assert [len(p["agents"]) for p in parts] == [1, 1]
+  merged = protocol_report.few_shot_rows(protocol_report.merge_summaries(parts))
+  assert json.loads(json.dumps(protocol_report.json_safe(merged))) == curve["rows"]
 
 
 def test_train_looks_of_an_agent_come_from_its_range():

@@ -134,6 +134,7 @@ def test_a_sweep_trains_evaluates_and_merges_its_runs(tiny_sweep, tmp_path):
   assert [r.name for r in runs] == ["pendulum-swingup-drq-s0-v0", "pendulum-swingup-drq-s1-v0"]
   assert [r["state"] for r in result["runs"]] == ["new", "new"]
   assert all(r.state() == "done" for r in runs)
+  assert result["few_shot"] == []  # one training look: no few-shot curve
   for r in runs:
     assert checkpoint.steps(r.out_dir)[-1] == 20
     with open(r.eval_json) as f:

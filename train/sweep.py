@@ -42,7 +42,11 @@ the cluster has GPUs, else `[ray] cpus` CPUs (default 1); every node needs dmcr_
 installed and the sweep folder on a shared filesystem. Finished, the eval.json of
 every done run are merged into `<sweep>/table.md` (and `table.json`) by
 `dmcr_jax.benchmarks.paper_table` (seeds trained apart pool into one row), one
-table per training look; `<sweep>/runs.json` lists each run's folder and state.
+table per training look; per task whose runs differ in training looks, the runs'
+few-shot curve (`dmcr_jax.benchmarks.few_shot`: test return and E_G against the number
+of training looks, mean and min–max over every seed) goes to
+`<sweep>/few_shot_<task>.md`, `.json` and `.png`; `<sweep>/runs.json` lists each run's
+folder and state.
 
     dmcr-sweep sweep.toml --dry-run     # the runs and what each still needs
     dmcr-sweep sweep.toml               # one after another, here
@@ -386,6 +390,35 @@ def merge(out: str, runs: list[Run]) -> str | None:
   return text
 
 
+def few_shot_tasks(runs: list[Run]) -> dict[str, list[str]]:
+  """{task: its looks} of each task whose runs differ in training looks: the tasks
+  whose few-shot curve `few_shot_curves` draws."""
+  looks: dict[str, list[str]] = {}
+  for run in runs:
+    looks.setdefault(run.task, [])
+    if run.look not in looks[run.task]:
+      looks[run.task].append(run.look)
+  return {task: ls for task, ls in looks.items() if len(ls) > 1}
+
+
+def few_shot_curves(out: str, runs: list[Run]) -> list[str]:
+  """`<out>/few_shot_<task>.md`, `.json` and `.png` for each task of `few_shot_tasks`
+  from its evaluated runs' eval.json (`dmcr_jax.benchmarks.few_shot.curves`: one
+  curve over every range, augmentation and seed); the Markdown paths written. A
+  task whose evaluations cannot merge is reported on stderr and skipped."""
+  from dmcr_jax.benchmarks import few_shot
+  written = []
+  for task in few_shot_tasks(runs):
+    paths = [r.eval_json for r in runs if r.task == task and os.path.exists(r.eval_json)]
+    try:
+      drawn = few_shot.curves(paths, out)
+    except ValueError as e:
+      print(f"sweep: few-shot curve of {task} not drawn: {e}", file=sys.stderr, flush=True)
+      continue
+    written += [os.path.join(out, f"few_shot_{t}.md") for t in drawn]
+  return written
+
+
 def _ray_results(runs: list[Run], cpus: int):
   """Each run as a Ray task (module doc); yields `run_one`'s results as they end (an
   exception's text as "error")."""
@@ -421,8 +454,9 @@ def _local_results(runs: list[Run]):
 
 def sweep(out: str, runs: list[Run], backend: str = "local", cpus: int = 1) -> dict:
   """Brings every run to "done" (`run_one`; "done" ones are skipped), then merges the
-  evaluations (`merge`); {"runs": each result, "table": the Markdown or None}.
-  `<out>/runs.json` records them."""
+  evaluations (`merge`) and draws the few-shot curves (`few_shot_curves`); {"runs":
+  each result, "table": the Markdown or None, "few_shot": the curves' Markdown
+  paths}. `<out>/runs.json` records them."""
   os.makedirs(out, exist_ok=True)
   todo = [r for r in runs if r.state() != "done"]
   for r in runs:
@@ -437,12 +471,13 @@ def sweep(out: str, runs: list[Run], backend: str = "local", cpus: int = 1) -> d
             "interrupted" if result.get("interrupted") else "done")
     print(f"sweep: {result['name']}: {what}", file=sys.stderr, flush=True)
   table = merge(out, runs)
+  curves = few_shot_curves(out, runs)
   listing = [dict(name=r.name, out_dir=r.out_dir, **{k: v for k, v in
                                                      results.get(r.name, {}).items()
                                                      if k != "name"}) for r in runs]
   with open(os.path.join(out, "runs.json"), "w") as f:
     json.dump(listing, f, indent=1)
-  return dict(runs=listing, table=table)
+  return dict(runs=listing, table=table, few_shot=curves)
 
 
 def main(argv=None) -> None:
@@ -479,12 +514,18 @@ def main(argv=None) -> None:
   if a.dry_run:
     for run in runs:
       print(f"{run.name} [{run.state()}]: {run.command()}")
+    for task, looks in few_shot_tasks(runs).items():
+      print(f"few-shot curve of {task} over looks {', '.join(looks)}: "
+            f"{os.path.join(out, f'few_shot_{task}')}.md, .json and .png, once its runs "
+            "are evaluated")
     print(f"{len(runs)} runs in {out}")
     return
   result = sweep(out, runs, a.backend, cpus)
   if result["table"]:
     print(result["table"], end="")
     print(f"wrote {os.path.join(out, 'table.md')} and table.json")
+  for path in result["few_shot"]:
+    print(f"wrote {os.path.splitext(path)[0]}.md, .json and .png")
   bad = [r["name"] for r in result["runs"] if "error" in r or r.get("interrupted")]
   if bad:
     sys.exit(f"sweep: {len(bad)} run{'s' if len(bad) > 1 else ''} not done: {', '.join(bad)}"
