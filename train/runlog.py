@@ -206,7 +206,8 @@ class RunLog:
     if self.episode_length is not None:
       row["episode_length"] = int(self.episode_length)
     if updates is not None:
-      row["updates_per_s"] = float(f"{updates / max(wall, 1e-9):.4g}")  # slow CPU runs too
+      # Four significant digits: a slow run's fraction of an update per second too.
+      row["updates_per_s"] = float(f"{updates / max(wall, 1e-9):.4g}")
     if self.looks is not None:
       row["looks"] = self.looks[agent]
     for f in self.metric_fields:
