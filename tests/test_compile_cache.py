@@ -100,3 +100,19 @@ def test_a_sweep_spec_may_not_set_the_cache_and_the_benchmarks_never_use_it():
       text = f.read()
     assert "compile_cache" not in text, path
     assert not re.search(r"\b(train_cli|evaluate|tev|sweep|__main__)\.main\(", text), path
+
+
+def test_each_ray_task_of_a_sweep_sets_the_sweeps_cache_on_its_node(tmp_path, monkeypatch,
+                                                                    jax_cache_config):
+  from dmcr_jax.train import sweep
+  for variable in (cc.ENV, "JAX_COMPILATION_CACHE_MAX_SIZE",
+                   "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"):
+    value = os.environ.get(variable)
+    monkeypatch.setenv(variable, "restored after")  # the variable restored as it is now
+    monkeypatch.delenv(variable) if value is None else monkeypatch.setenv(variable, value)
+  seen = []
+  monkeypatch.setattr(sweep, "run_one", lambda run: seen.append(
+      (run, jax.config.jax_compilation_cache_dir)) or {})
+  sweep._run_with_cache("run", str(tmp_path), False)
+  sweep._run_with_cache("run", None, True)
+  assert seen == [("run", str(tmp_path)), ("run", None)]
