@@ -11,9 +11,11 @@ Each worker compiles its `init` and `step` in a background thread as soon as it
 has started, for its slice's size and the seed argument's kind the env starts
 with, so that the compilation overlaps whatever the training process does before
 its first physics call instead of following it. The workers share a persistent
-compilation cache (JAX's, `JAX_COMPILATION_CACHE_DIR` if set, else a folder of
-the pool's own): worker 0 compiles first and the others then load what it
-compiled, instead of W processes compiling the same programs at once.
+compilation cache (JAX's, the folder this process's JAX config or
+`JAX_COMPILATION_CACHE_DIR` names, with this process's size bound and minimum
+compile time, e.g. a CLI's `--compile-cache`; else a folder of the pool's own):
+worker 0 compiles first and the others then load what it compiled, instead of W
+processes compiling the same programs at once.
 
 State lives in shared memory, one record per env (every leaf of the env's
 `physics_env.EnvState`, its key as key data, the step's reward and truncation),
@@ -102,9 +104,19 @@ def _seed_inputs(seeds, n: int) -> dict[str, np.ndarray]:
 
 
 def _user_cache_dir() -> str | None:
-  """JAX's persistent compilation cache folder, if the user set one (environment
-  or `jax.config`)."""
-  return os.environ.get("JAX_COMPILATION_CACHE_DIR") or jax.config.jax_compilation_cache_dir
+  """JAX's persistent compilation cache folder, if the user set one (`jax.config`,
+  which JAX_COMPILATION_CACHE_DIR sets at import, else that variable)."""
+  return jax.config.jax_compilation_cache_dir or os.environ.get("JAX_COMPILATION_CACHE_DIR")
+
+
+def _cache_env(folder: str) -> dict[str, str]:
+  """The environment that points a worker's JAX at `folder` with this process's
+  cache settings (a folder with a size bound needs every writer to keep it: JAX's
+  eviction reads each entry's access time, which only bounded writers record)."""
+  return {"JAX_COMPILATION_CACHE_DIR": folder,
+          "JAX_COMPILATION_CACHE_MAX_SIZE": str(jax.config.jax_compilation_cache_max_size),
+          "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS":
+              str(jax.config.jax_persistent_cache_min_compile_time_secs)}
 
 
 _FIRST_COMPILE_TIMEOUT = 300.0
@@ -237,7 +249,7 @@ class PhysicsPool(OwnsWorkerPool):
           worker_args=[((b - a,), bool(ranged), compiled, w == 0)
                        for w, (a, b) in enumerate(slice_bounds(n, workers))],
           env={"JAX_PLATFORMS": "cpu", "XLA_PYTHON_CLIENT_PREALLOCATE": "false",
-               "JAX_COMPILATION_CACHE_DIR": cache},
+               **_cache_env(cache)},
           # also at exit if the pool is never closed (no reference to self: no cycle)
           on_close=self._own_cache and functools.partial(shutil.rmtree, self._own_cache,
                                                          ignore_errors=True))

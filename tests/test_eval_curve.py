@@ -133,6 +133,36 @@ def test_the_runs_tensorboard_and_wandb_curves_equal_its_csvs(eval_run):
   assert run["config"]["task"] == "cartpole-balance"
 
 
+@pytest.mark.slow
+def test_the_runs_episode_lengths_and_updates_per_s_reach_tensorboard_and_wandb(eval_run):
+  import numpy as np
+  from dmcr_jax import models
+  from dmcr_jax.train import loggers
+  from tests.test_loggers import read_tensorboard, read_wandb
+  cfg, _ = eval_run
+  rows = read(os.path.join(cfg.out_dir, "log.csv"))
+  # Episodes end at the time limit: its control steps over the action repeat.
+  length = -(-models.load(cfg.task).time_limit // cfg.action_repeat)
+  assert length == 10 and {int(r["episode_length"]) for r in rows} == {length}
+  learning = [r for r in rows if int(r["step"]) > cfg.warmup_steps]
+  assert learning and all(float(r["updates_per_s"]) > 0 for r in learning)
+  # The learner's own count: the last episodes are reported after the run's last
+  # chunk, with every update of the run.
+  _, agents, _ = checkpoint.load_run(cfg.out_dir, cfg.steps)
+  last = rows[-1]
+  assert float(last["updates_per_s"]) * float(last["wall_s"]) == pytest.approx(
+      int(np.sum(agents.step)), rel=0.01)
+  tb = read_tensorboard(os.path.join(cfg.out_dir, loggers.TENSORBOARD_DIR, "agent_0-seed_0-drq"))
+  steps = sorted({int(r["step"]) for r in rows})
+  assert tb["episode/length"] == [(s, length) for s in steps]
+  per_s = {int(r["step"]): float(r["updates_per_s"]) for r in rows}
+  assert dict(tb["perf/updates_per_s"]) == pytest.approx(per_s, rel=1e-6)
+  (run,) = read_wandb(cfg.out_dir).values()
+  history = [h for h in run["history"] if "episode/return" in h]
+  assert [(h["step"], h["episode/length"]) for h in history] == [(s, length) for s in steps]
+  assert {h["step"]: h["perf/updates_per_s"] for h in history} == pytest.approx(per_s)
+
+
 @pytest.mark.parametrize("off", [0, None])
 def test_no_eval_curve_without_eval_every(tmp_path, off):
   plan = config.resolve(tiny_config(tmp_path / "run", eval_every=off))

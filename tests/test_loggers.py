@@ -221,3 +221,45 @@ def test_reports_reach_tensorboard_and_wandb_as_log_csv_holds_them(tmp_path, mon
   resumed = read_wandb(out)[ids["0"]]
   assert [h["episode/return"] for h in resumed["history"] if "episode/return" in h][-2:] == [
       6.0, 8.0]
+
+
+def test_episode_length_and_updates_per_s_reach_log_csv_and_tensorboard(tmp_path):
+  out = str(tmp_path / "run")
+  os.makedirs(out)
+  cfg = loop.TrainConfig(out_dir=out, steps=40, seeds=(0, 1), loggers=("csv", "tensorboard"))
+  specs = cfg.agents()
+  with runlog.RunLog(cfg, specs, None, 0, False, progress=False, episode_length=125) as log:
+    log.wall = lambda: 4.0  # this segment's seconds, fixed: updates/s = updates / 4
+    log.report(0, 10, [(10, 0, 1.0, {}), (10, 1, 2.0, {})], updates=0)  # the warm-up
+    log.report(10, 20, [(20, 0, 3.0, {})], updates=200)
+    log.report(20, 30, [(30, 1, 4.0, {})])  # a driver that counts no updates
+  rows = read_csv(os.path.join(out, "log.csv"))
+  assert [(r["episode_length"], r["updates_per_s"]) for r in rows] == [
+      ("125", "0.0"), ("125", "0.0"), ("125", "50.0"), ("125", "")]
+  names = loggers.run_names(specs)
+  tb = [read_tensorboard(os.path.join(out, loggers.TENSORBOARD_DIR, n)) for n in names]
+  assert tb[0]["episode/length"] == [(10, 125.0), (20, 125.0)]
+  assert tb[1]["episode/length"] == [(10, 125.0), (30, 125.0)]
+  assert tb[0]["perf/updates_per_s"] == [(10, 0.0), (20, 50.0)]
+  assert tb[1]["perf/updates_per_s"] == [(10, 0.0)]  # none where the count is not known
+
+
+def test_a_log_csv_written_before_the_length_and_updates_columns_resumes_with_them(tmp_path):
+  out = str(tmp_path / "run")
+  os.makedirs(out)
+  old = ["step", "agent", "seed", "aug", "episode_return", "wall_s", "agent_steps_per_s",
+         "critic_loss", "actor_loss", "alpha", "q"]
+  with open(os.path.join(out, "log.csv"), "w", newline="") as f:
+    writer = csv.writer(f)
+    writer.writerow(old)
+    writer.writerows([[10, 0, 0, "drq", 1.5, 2.0, 5.0, "", "", "", ""],
+                      [30, 0, 0, "drq", 9.0, 6.0, 5.0, 0.1, 0.2, 0.3, 0.4]])
+  cfg = loop.TrainConfig(out_dir=out, steps=40)
+  with runlog.RunLog(cfg, cfg.agents(), None, 20, True, progress=False,
+                     episode_length=125) as log:
+    log.report(20, 40, [(40, 0, 7.0, {})], updates=100)
+  rows = read_csv(os.path.join(out, "log.csv"))
+  assert list(rows[0]) == log.fields and {"episode_length", "updates_per_s"} <= set(log.fields)
+  assert [(r["step"], r["episode_return"], r["wall_s"], r["episode_length"]) for r in rows] == [
+      ("10", "1.5", "2.0", ""), ("40", "7.0", rows[1]["wall_s"], "125")]
+  assert float(rows[1]["updates_per_s"]) > 0 and rows[0]["agent_steps_per_s"] == "5.0"

@@ -47,6 +47,7 @@ import os
 import sys
 
 from dmcr_jax.checks import positive_int
+from dmcr_jax.train import compile_cache
 from dmcr_jax.train.config import (AGENT_LOOPS, CPU_PHYSICS_MAX_ENVS, EVAL_RENDERERS, PHYSICS,
                                    PHYSICS_WORKERS_MAX, RENDERERS, RESUMABLE, TrainConfig,
                                    egl_devices_arg, load_config, resolve)
@@ -183,6 +184,7 @@ def build_parser() -> argparse.ArgumentParser:
                       f"refused, except {', '.join('--' + f.replace('_', '-') for f in RESUMABLE)})")
   p.add_argument("--no-progress", action="store_true",
                  help="no progress bar (progress lines on stderr instead)")
+  compile_cache.add_arguments(p)
   return p
 
 
@@ -351,9 +353,11 @@ def default_out(task: str, sac_cfg: SACConfig) -> str:
 
 
 def main(argv=None) -> None:
-  """`dmcr-train`: parses the command line, trains, prints the summary as JSON
-  (exit status 130 when interrupted)."""
+  """`dmcr-train`: parses the command line, sets the compilation cache
+  (`dmcr_jax.train.compile_cache`), trains, prints the summary as JSON (exit
+  status 130 when interrupted)."""
   _, a = parse(argv)
+  compile_cache.use(compile_cache.chosen(a))
   try:
     summary = train(a.plan, resume=a.resume, progress=not a.no_progress)
   except (ValueError, FileExistsError, FileNotFoundError) as e:

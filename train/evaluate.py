@@ -267,7 +267,9 @@ def intensities_arg(text: str) -> tuple[float, ...]:
 
 
 def main(argv=None) -> None:
-  """`dmcr-evaluate RUN_DIR [options]`."""
+  """`dmcr-evaluate RUN_DIR [options]` (the compilation cache:
+  `dmcr_jax.train.compile_cache`)."""
+  from dmcr_jax.train import compile_cache
   from dmcr_jax.visuals.tiled import QUALITY
   from dmcr_jax.train.__main__ import HelpFormatter
   d = EvalConfig()
@@ -316,6 +318,7 @@ def main(argv=None) -> None:
                  help="also an episode video across visual seeds (MP4, else GIF)")
   p.add_argument("--skip-protocol", action="store_true",
                  help="only the extras asked for")
+  compile_cache.add_arguments(p)
   a = p.parse_args(argv)
   try:
     cfg = EvalConfig(visual_seeds=a.visual_seeds, dynamics_seeds=a.dynamics_seeds,
@@ -337,6 +340,7 @@ def main(argv=None) -> None:
   except (ValueError, FileNotFoundError) as e:
     p.error(str(e))
   out = a.out or os.path.join(a.run_dir, "eval")
+  compile_cache.use(compile_cache.chosen(a))
   try:
     if not a.skip_protocol:
       summary = evaluate(a.run_dir, cfg, out_dir=out, agents=agents,

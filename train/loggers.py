@@ -11,11 +11,16 @@ What is written, per agent, against the training step per agent (transitions):
 
 - at every step where episodes of the agent end: `episode/return` (the mean return of
   the agent's episodes that ended there, its N envs ending together; log.csv holds
-  each), the latest update means `train/critic_loss`, `train/actor_loss`,
-  `train/alpha_loss`, `train/alpha`, `train/q`, `train/entropy` (−mean log π),
-  `train/lam_loss` and `train/aux_loss` where the learner has them (once updates
-  have run), and `perf/transitions_per_s` (transitions of all agents per second
-  of this process's loop, log.csv's `agent_steps_per_s`);
+  each), `episode/length` (their length in agent steps: DMC episodes end at the
+  task's time limit, so it is the env's `episode_length`, the time limit in
+  control steps over the action repeat), the latest update means
+  `train/critic_loss`, `train/actor_loss`, `train/alpha_loss`, `train/alpha`,
+  `train/q`, `train/entropy` (−mean log π), `train/lam_loss` and `train/aux_loss`
+  where the learner has them (once updates have run), `perf/transitions_per_s`
+  (transitions of all agents per second of this process's loop, log.csv's
+  `agent_steps_per_s`) and `perf/updates_per_s` (gradient updates of all agents
+  per second of that loop, counted by the learner: `sac.AgentState.step`; 0
+  during the warm-up; log.csv's `updates_per_s`);
 - at each evaluation during training (`--eval-every`): `eval/<condition>` (the mean
   held-out return), `eval/train` (the return at the agent's training looks) and
   `eval/e_g/<condition>` (E_G, where defined);
@@ -156,11 +161,16 @@ def agent_hparams(cfg, specs, looks=None) -> list[dict]:
 
 def episode_values(row: dict, metrics: dict, agent: int, returns: list[float]) -> dict:
   """The scalars of an agent's episodes that ended at one step: `returns` (their
-  returns, log.csv's rows) averaged, the learner's update metrics (name → (K,)
-  means; NaN ones left out) and the row's transitions per second."""
+  returns, log.csv's rows) averaged, the row's episode length (agent steps),
+  transitions and gradient updates per second (each where the row has it), and
+  the learner's update metrics (name → (K,) means; NaN ones left out)."""
   import numpy as np
   values = {"episode/return": float(np.mean(returns)),
             "perf/transitions_per_s": float(row["agent_steps_per_s"])}
+  for tag, field in (("episode/length", "episode_length"), ("perf/updates_per_s",
+                                                            "updates_per_s")):
+    if row.get(field, "") != "":
+      values[tag] = float(row[field])
   for name in TRAIN_METRICS:
     if name in metrics:
       v = float(np.mean(metrics[name][agent]))

@@ -291,8 +291,8 @@ def train(cfg: TrainConfig | Plan, resume: bool = False, progress: bool = True,
   The agent axis is sharded over the plan's local devices (`devices` None: all of
   them when K is a multiple of their count, else one; the device driver runs on
   one). Writes `<out_dir>/config.json`, `<out_dir>/log.csv` (one row per finished
-  episode: step, agent, seed, augmentation, return, wall time, transitions/s and
-  the latest update metrics), `<out_dir>/learning_curve.png`, segments.json and
+  episode: step, agent, seed, augmentation, return, length, wall time,
+  transitions/s, gradient updates/s and the latest update metrics), `<out_dir>/learning_curve.png`, segments.json and
   summary.json (with the host driver also `HostTimes.summary`) and the
   checkpoints; with `eval_every`, eval_curve.csv and eval_curve.png
   (`dmcr_jax.train.eval_curve`; summary.json's "eval_seconds"). A resumed run whose checkpoint is at `steps` already returns its
@@ -341,11 +341,15 @@ def train(cfg: TrainConfig | Plan, resume: bool = False, progress: bool = True,
     stack.callback(steps.close)
     manager = checkpoint.manager(cfg.out_dir)
     log = stack.enter_context(runlog.RunLog(cfg, plan.agents, plan.look_labels, start,
-                                            resume, progress))
+                                            resume, progress,
+                                            episode_length=env.episode_length))
     curve = stack.enter_context(eval_curve.EvalCurve(plan, start, resume))
-    step = start
+    step, updates_before = start, train_step.update_count(learner)
     for before, step, episodes, learner in steps:   # the stepper ends at `steps`
-      log.report(before, step, episodes)
+      # The updates this segment has run, read where episodes end (the drivers
+      # then wait for the learner anyway).
+      updates = train_step.update_count(learner) - updates_before if episodes else None
+      log.report(before, step, episodes, updates)
       if crossed(cfg.checkpoint_every, before, step) or step >= cfg.steps or log.stopped:
         checkpoint.save(manager, step, learner.agents, learner.key)
         log.checkpointed(step)

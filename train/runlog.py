@@ -9,6 +9,13 @@ an evaluation during training to those sinks; `checkpointed` records each
 checkpoint (`<out>/segments.json`); `stopped` is the flag that SIGINT/SIGTERM
 set.
 
+log.csv has one row per finished episode: step, agent, seed, aug (and looks
+with several training-look ranges), episode_return, episode_length (agent steps:
+DMC episodes end at the task's time limit), wall_s, agent_steps_per_s
+(transitions of all agents per second of this segment's loop), updates_per_s
+(gradient updates of all agents per second of it) and the latest update means
+(`METRICS`, and aux_loss for CURL and SAC+AE).
+
 The log is the run's truth: a resumed run first drops the rows logged past
 the checkpoint it restored (a killed process logs episodes after its last
 checkpoint; they belong to a past that the run no longer has), so `step`
@@ -82,6 +89,24 @@ def earlier_segments(out_dir: str, start: int) -> list[dict]:
           if s.get("steps") is not None and (s.get("start") or 0) < start]
 
 
+def log_header(path: str, fields: list[str]) -> list[str]:
+  """The header of the log.csv at `path` made to hold `fields`: a log written
+  before one of them existed is rewritten (atomically) with it, empty in its
+  earlier rows. Returns the file's header: `fields`, then any other columns it
+  has."""
+  with open(path, newline="") as f:
+    reader = csv.DictReader(f)
+    old, rows = list(reader.fieldnames or []), list(reader)
+  header = list(fields) + [c for c in old if c not in fields]
+  if old and header != old:
+    with open(path + ".tmp", "w", newline="") as f:
+      writer = csv.DictWriter(f, fieldnames=header)
+      writer.writeheader()
+      writer.writerows(rows)
+    os.replace(path + ".tmp", path)
+  return header if old else list(fields)
+
+
 def truncate_log(path: str, step: int) -> int:
   """Drops the rows of log.csv at `path` past training step `step` (rewritten
   atomically); the number dropped."""
@@ -110,24 +135,29 @@ class RunLog:
     start: the step the run starts at (a resumed run's checkpoint).
     resume: whether it continues a run (log.csv is then kept up to `start`).
     progress: show progress (a bar when stderr is a terminal, else lines).
+    episode_length: agent steps per episode (the env's `episode_length`: the
+      task's time limit at the run's action repeat), logged with each episode;
+      None: not known, left empty.
   """
 
-  def __init__(self, cfg, specs, looks, start: int, resume: bool, progress: bool):
+  def __init__(self, cfg, specs, looks, start: int, resume: bool, progress: bool,
+               episode_length: int | None = None):
     self.cfg, self.specs, self.start = cfg, list(specs), start
     self.looks = None if looks is None else list(looks)
+    self.episode_length = episode_length
     self.every = progress_every(cfg)
     self._last_line = None
     self.stop = {"signal": None}
     self._previous = {s: signal.signal(s, lambda sig, _: self.stop.update(signal=sig))
                       for s in (signal.SIGINT, signal.SIGTERM)}
     self.path = os.path.join(cfg.out_dir, "log.csv")
-    self.fields = ["step", "agent", "seed", "aug", "episode_return", "wall_s",
-                   "agent_steps_per_s", *METRICS]
-    if cfg.sac.algo != "sac_aug":
-      self.fields.append("aux_loss")
-    if looks is not None:
-      self.fields.insert(4, "looks")
+    self.metric_fields = list(METRICS) + (["aux_loss"] if cfg.sac.algo != "sac_aug" else [])
+    self.fields = ["step", "agent", "seed", "aug", *(["looks"] if looks is not None else []),
+                   "episode_return", "episode_length", "wall_s", "agent_steps_per_s",
+                   "updates_per_s", *self.metric_fields]
     keep = resume and os.path.exists(self.path)
+    if keep:  # an older run's log gains the columns added since
+      self.fields = log_header(self.path, self.fields)
     if keep and truncate_log(self.path, start):
       print(f"{cfg.task}: dropped the log rows past step {start:,}, the checkpoint "
             "resumed from", file=sys.stderr, flush=True)
@@ -163,18 +193,24 @@ class RunLog:
     return time.perf_counter() - self.t0
 
   def episode(self, step: int, agent: int, episode_return: float, wall: float,
-              metrics: dict) -> dict:
+              metrics: dict, updates: int | None = None) -> dict:
     """One finished episode of `agent` at `step` (`wall`: this segment's seconds;
     metrics: name → (K,) latest update means; NaN entries, no update yet, are
-    left out); its log.csv row."""
+    left out; updates: the gradient updates of all agents in this segment so
+    far, None: not known, updates_per_s left empty); its log.csv row."""
     self.recent.append(episode_return)
     row = dict(step=step, agent=agent, seed=self.specs[agent][0], aug=self.specs[agent][1],
                episode_return=episode_return, wall_s=round(self.offset + wall, 2),
                agent_steps_per_s=round((step - self.start) * len(self.specs)
                                        / max(wall, 1e-9), 1))
+    if self.episode_length is not None:
+      row["episode_length"] = int(self.episode_length)
+    if updates is not None:
+      # Four significant digits: a slow run's fraction of an update per second too.
+      row["updates_per_s"] = float(f"{updates / max(wall, 1e-9):.4g}")
     if self.looks is not None:
       row["looks"] = self.looks[agent]
-    for f in self.fields[7 + (self.looks is not None):]:
+    for f in self.metric_fields:
       if f in metrics and np.isfinite(np.mean(metrics[f][agent])):
         row[f] = float(np.mean(metrics[f][agent]))
     self._writer.writerow(row)
@@ -183,16 +219,18 @@ class RunLog:
       self._bar.update(min(step, self.cfg.steps) - self._bar.n)
     return row
 
-  def report(self, before: int, step: int, episodes) -> None:
+  def report(self, before: int, step: int, episodes, updates: int | None = None) -> None:
     """The one call a driver makes per step (or chunk) that moved the run from
     `before` to `step`: each finished episode (step, agent, return, update
     metrics) logged, the sinks given each agent's episodes per step
-    (`dmcr_jax.train.loggers.episode_values`), then the progress when `due`."""
+    (`dmcr_jax.train.loggers.episode_values`), then the progress when `due`.
+    `updates`: the gradient updates all agents have run in this segment by
+    `step` (the learner's count; None: not known)."""
     from dmcr_jax.train.loggers import episode_values
     wall = self.wall()
     ended: dict[tuple[int, int], list] = {}
     for at, agent, episode_return, metrics in episodes:
-      row = self.episode(at, agent, episode_return, wall, metrics)
+      row = self.episode(at, agent, episode_return, wall, metrics, updates)
       ended.setdefault((at, agent), []).append((row, metrics))
     for (at, agent), done in ended.items():
       values = episode_values(done[-1][0], done[-1][1], agent,

@@ -318,6 +318,12 @@ def store(learner: Learner, obs: jax.Array, first: jax.Array, action: jax.Array,
   return learner.replace(buffers=buffers)
 
 
+def update_count(learner: Learner) -> int:
+  """The gradient updates all K agents have run (the sum of their update counts,
+  `sac.AgentState.step`; an update pair is two); waits for the updates launched."""
+  return int(np.sum(jax.device_get(learner.agents.step)))
+
+
 def init_learner(agents: sac.AgentState, buffers: replay.ReplayBuffer, key: jax.Array,
                  step: int, spec: StepSpec) -> Learner:
   """A `Learner` at training step `step` (metrics NaN: no update yet)."""

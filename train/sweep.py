@@ -69,7 +69,8 @@ KEYS = ("out", "tasks", "seeds", "augs", "looks", "together", "train", "per_task
 """The top-level keys of a spec."""
 TOGETHER = ("seeds", "augs")
 """The axes `together` may name."""
-SWEEP_SET = ("task", "seeds", "aug", "visual_seeds", "out", "resume", "no_progress")
+SWEEP_SET = ("task", "seeds", "aug", "visual_seeds", "out", "resume", "no_progress",
+             "compile_cache", "no_compile_cache")
 """dmcr-train options the sweep sets itself (not allowed in [train])."""
 RAY_KEYS = ("cpus",)
 """The keys of a spec's [ray] table."""
@@ -419,18 +420,31 @@ def few_shot_curves(out: str, runs: list[Run]) -> list[str]:
   return written
 
 
-def _ray_results(runs: list[Run], cpus: int):
+def _run_with_cache(run: Run, cache: str | None, off: bool) -> dict:
+  """`run_one` in a Ray worker, with the sweep's compilation cache: `--compile-cache`
+  as given (None: the node's own default folder, `compile_cache.default_dir`), or
+  none with `off`."""
+  from dmcr_jax.train import compile_cache
+  compile_cache.use(compile_cache.chosen(argparse.Namespace(compile_cache=cache,
+                                                            no_compile_cache=off)))
+  return run_one(run)
+
+
+def _ray_results(runs: list[Run], cpus: int, cache: tuple | None = None):
   """Each run as a Ray task (module doc); yields `run_one`'s results as they end (an
-  exception's text as "error")."""
+  exception's text as "error"). `cache`: (`--compile-cache`, `--no-compile-cache`)
+  as given, applied in each task (`_run_with_cache`); None: the tasks' processes
+  keep the compilation cache they have."""
   import ray
   if not ray.is_initialized():
     ray.init(address=os.environ.get("RAY_ADDRESS") or None, log_to_driver=False)
   gpus = 1 if ray.cluster_resources().get("GPU", 0) >= 1 else 0
-  task = ray.remote(num_gpus=gpus, num_cpus=0 if gpus else cpus, max_retries=0)(run_one)
+  task = ray.remote(num_gpus=gpus, num_cpus=0 if gpus else cpus, max_retries=0)(
+      run_one if cache is None else _run_with_cache)
   print(f"sweep: {len(runs)} Ray tasks, each holding "
         + ("one GPU" if gpus else f"{cpus} CPU{'s' if cpus > 1 else ''}"),
         file=sys.stderr, flush=True)
-  pending = {task.remote(r): r for r in runs}
+  pending = {task.remote(r, *(cache or ())): r for r in runs}
   while pending:
     done, _ = ray.wait(list(pending), num_returns=1)
     run = pending.pop(done[0])
@@ -452,11 +466,14 @@ def _local_results(runs: list[Run]):
       return
 
 
-def sweep(out: str, runs: list[Run], backend: str = "local", cpus: int = 1) -> dict:
+def sweep(out: str, runs: list[Run], backend: str = "local", cpus: int = 1,
+          cache: tuple | None = None) -> dict:
   """Brings every run to "done" (`run_one`; "done" ones are skipped), then merges the
   evaluations (`merge`) and draws the few-shot curves (`few_shot_curves`); {"runs":
   each result, "table": the Markdown or None, "few_shot": the curves' Markdown
-  paths}. `<out>/runs.json` records them."""
+  paths}. `<out>/runs.json` records them. `cache`: (`--compile-cache`,
+  `--no-compile-cache`) as given, which each Ray task applies on its node (None: the
+  tasks keep their processes' cache; local runs use this process's, which `main` sets)."""
   os.makedirs(out, exist_ok=True)
   todo = [r for r in runs if r.state() != "done"]
   for r in runs:
@@ -464,7 +481,7 @@ def sweep(out: str, runs: list[Run], backend: str = "local", cpus: int = 1) -> d
       print(f"sweep: {r.name}: done, skipped", file=sys.stderr, flush=True)
   results = {r.name: dict(name=r.name, state="done", eval_json=r.eval_json) for r in runs
              if r not in todo}
-  stream = _ray_results(todo, cpus) if backend == "ray" else _local_results(todo)
+  stream = _ray_results(todo, cpus, cache) if backend == "ray" else _local_results(todo)
   for result in stream:
     results[result["name"]] = result
     what = ("failed: " + result["error"] if "error" in result else
@@ -481,8 +498,10 @@ def sweep(out: str, runs: list[Run], backend: str = "local", cpus: int = 1) -> d
 
 
 def main(argv=None) -> None:
-  """`dmcr-sweep SPEC [--backend local|ray] [--dry-run] [--out DIR]` (module doc); exit
-  status 1 when a run failed or was interrupted."""
+  """`dmcr-sweep SPEC [--backend local|ray] [--dry-run] [--out DIR] [--compile-cache
+  DIR | --no-compile-cache]` (module doc; the cache: `dmcr_jax.train.compile_cache`);
+  exit status 1 when a run failed or was interrupted."""
+  from dmcr_jax.train import compile_cache
   p = argparse.ArgumentParser(prog="dmcr-sweep", description=__doc__.splitlines()[0])
   p.add_argument("spec", help="the sweep's TOML spec")
   p.add_argument("--backend", default="local", choices=BACKENDS,
@@ -495,6 +514,7 @@ def main(argv=None) -> None:
                  help="the sweep folder (default: the spec's out, else runs/<spec name>)")
   p.add_argument("--dry-run", action="store_true",
                  help="print the runs, their state and commands, and run nothing")
+  compile_cache.add_arguments(p)
   a = p.parse_args(argv)
   try:
     if a.backend == "ray":
@@ -520,7 +540,8 @@ def main(argv=None) -> None:
             "are evaluated")
     print(f"{len(runs)} runs in {out}")
     return
-  result = sweep(out, runs, a.backend, cpus)
+  compile_cache.use(compile_cache.chosen(a))
+  result = sweep(out, runs, a.backend, cpus, (a.compile_cache, a.no_compile_cache))
   if result["table"]:
     print(result["table"], end="")
     print(f"wrote {os.path.join(out, 'table.md')} and table.json")
