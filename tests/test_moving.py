@@ -21,6 +21,10 @@ from dmcr_jax.visuals import moving as M
 from dmcr_jax.visuals import render_model as rmod
 from dmcr_jax.visuals import textures as T
 
+# One worker runs the module, so that its module fixtures (two pool env rollouts) are
+# built once and not in each xdist worker that gets one of their tests.
+pytestmark = pytest.mark.xdist_group("moving")
+
 ALL = M.MOVING_FACTORS
 
 

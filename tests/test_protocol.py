@@ -25,6 +25,10 @@ import dmcr_jax
 from dmcr_jax import protocol as P
 from dmcr_jax import protocol_report
 
+# One worker runs the module, so that its module fixtures (each a compiled pass) are
+# built once and not in each xdist worker that gets one of their tests.
+pytestmark = pytest.mark.xdist_group("protocol")
+
 TASK = "cartpole-balance"
 OPTS = dict(visual_seeds=2, dynamics_seeds=2, train_episodes=3,
             conditions=("none", "floor", "all"), train_look=5, image_size=16,
@@ -192,12 +196,20 @@ def test_actions_out_of_range_or_nan_stop_the_pass_with_a_clear_message(single):
     proto(make_params(shift=float("nan")))
 
 
-@pytest.mark.slow
-def test_k_agents_in_one_pass_equal_k_single_passes(single):
-  proto, _ = single
+@pytest.fixture(scope="module")
+def two_agents():
+  """Two agents' params and their pass as one, its renders in padded chunks of 4 envs
+  (30 envs a block: 2 pad); one compilation serves the K-agent and the padding test."""
   params = [make_params(seed=s, noise=0.3) for s in (1, 2)]
   stacked = jax.tree.map(lambda *x: jnp.stack(x), *params)
-  both = P.evaluate(TASK, pixel_policy, stacked, agents=2, **OPTS)
+  proto = P.prepare(TASK, pixel_policy, agents=2, render_chunk=4, **OPTS)
+  return params, proto, proto(stacked)
+
+
+@pytest.mark.slow
+def test_k_agents_in_one_pass_equal_k_single_passes(single, two_agents):
+  proto, _ = single
+  params, _, both = two_agents
   assert both.train.shape == (2, 3) and both.returns["all"].shape == (2, 4)
   for k, p in enumerate(params):
     one = proto(p)
@@ -221,12 +233,17 @@ def test_a_block_renders_in_chunks_of_one_size():
 
 
 @pytest.mark.slow
-def test_padded_render_chunks_give_the_same_returns(single):
-  _, want = single
-  got = P.evaluate(TASK, pixel_policy, make_params(), render_chunk=4, **OPTS)  # 15 envs: 1 pad
-  np.testing.assert_array_equal(got.train, want.train)
-  for c in OPTS["conditions"]:
-    np.testing.assert_array_equal(got.returns[c], want.returns[c])
+def test_padded_render_chunks_give_the_same_returns(single, two_agents):
+  # The two agents' block rendered in padded chunks against each agent's own pass
+  # rendered in one chunk.
+  proto, _ = single
+  params, padded, got = two_agents
+  assert P.render_padding(padded.pixel_env()) == 2 and P.render_padding(proto.pixel_env()) == 0
+  for k, p in enumerate(params):
+    want = proto(p)
+    np.testing.assert_array_equal(got.train[k], want.train[0])
+    for c in OPTS["conditions"]:
+      np.testing.assert_array_equal(got.returns[c][k], want.returns[c][0])
 
 
 @pytest.mark.slow

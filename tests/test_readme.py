@@ -18,10 +18,23 @@ import sys
 
 import pytest
 
-# One worker runs the snippets one after another, so that snippets making the same
-# env (the README's and docs/envs.md's pool env) load each other's compiled programs
-# from the session's compilation cache instead of compiling them side by side.
-pytestmark = pytest.mark.xdist_group("readme")
+# Snippets that compile the same programs (the README's walker task and pool env and
+# docs/tasks.md's and docs/envs.md's; the protocol passes of docs/protocol.md; the
+# cartpole ray-caster envs) share an xdist group: one worker runs them one after
+# another, so that each loads the others' compiled programs from the session's
+# compilation cache instead of compiling them side by side. The groups themselves run
+# on whichever worker is free.
+def group(code: str) -> str:
+  """The xdist group of a snippet: by the programs it compiles."""
+  if "protocol." in code:
+    return "readme-protocol"
+  if "loop.train" in code:
+    return "readme-train"
+  if "walker-walk" in code:
+    return "readme-walker"
+  if "cartpole" in code:
+    return "readme-cartpole"
+  return "readme"
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TINY_SIZES = re.compile(r"\b(1024|4096|256)\b")
@@ -46,6 +59,8 @@ def python_blocks() -> list[tuple[str, str]]:
 
 BLOCKS = python_blocks()
 IDS = [where for where, _ in BLOCKS]
+RUNS = [pytest.param(where, code, id=where, marks=pytest.mark.xdist_group(group(code)))
+        for where, code in BLOCKS]
 
 
 def test_there_are_snippets_and_no_stray_fences():
@@ -62,7 +77,7 @@ def test_snippet_compiles(where, code):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("where, code", BLOCKS, ids=IDS)
+@pytest.mark.parametrize("where, code", RUNS)
 def test_snippet_runs_at_tiny_sizes(where, code, tmp_path):
   env = dict(os.environ, PYTHONPATH=os.pathsep.join(
       p for p in (ROOT, os.environ.get("PYTHONPATH")) if p))
