@@ -24,6 +24,7 @@ import pytest
 import dmcr_jax
 from dmcr_jax import protocol as P
 from dmcr_jax import protocol_report
+from tests.host_episodes import host_episode_returns
 
 # One worker runs the module, so that its module fixtures (each a compiled pass) are
 # built once and not in each xdist worker that gets one of their tests.
@@ -64,15 +65,7 @@ def old_path(params, renderer="jax", **render):
                       frame_skip=OPTS["action_repeat"], image_size=OPTS["image_size"],
                       seed=OPTS["seed"], renderer=renderer, **render)
 
-  def run_episodes():
-    obs, _ = env.reset(seed=resets)
-    low, high = env.single_action_space.low, env.single_action_space.high
-    for _ in range(env.episode_length):
-      a = np.asarray(policy(obs))
-      obs, _, _, truncated, info = env.step(
-          (low + (a + 1.0) * 0.5 * (high - low)).astype(np.float32))
-    assert truncated.all()
-    return np.asarray(info["episode_return"], np.float64)
+  run_episodes = lambda: host_episode_returns(env, policy, resets)
 
   out = {}
   with env:

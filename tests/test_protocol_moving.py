@@ -22,6 +22,7 @@ import pytest
 import dmcr_jax
 from dmcr_jax import protocol as P
 from dmcr_jax import protocol_pool, protocol_report
+from tests.host_episodes import host_episode_returns
 
 TASK = "cartpole-balance"
 OPTS = dict(visual_seeds=2, dynamics_seeds=1, train_episodes=2, train_look=0,
@@ -52,15 +53,7 @@ def host_returns(renderer, conditions, **render):
       TASK, num_envs=seeds.size, visual_seeds=seeds, frame_skip=OPTS["action_repeat"],
       image_size=OPTS["image_size"], seed=OPTS["seed"], renderer=renderer, **render, **kw)
 
-  def run(env):
-    obs, _ = env.reset(seed=resets)
-    low, high = env.single_action_space.low, env.single_action_space.high
-    for _ in range(env.episode_length):
-      a = np.asarray(act(obs))
-      obs, _, _, truncated, info = env.step(
-          (low + (a + 1) * 0.5 * (high - low)).astype(np.float32))
-    assert truncated.all()
-    return np.asarray(info["episode_return"], np.float64)
+  run = lambda env: host_episode_returns(env, act, resets)
 
   out = {}
   if any(c not in MOVING for c in conditions):
