@@ -263,3 +263,29 @@ def test_a_log_csv_written_before_the_length_and_updates_columns_resumes_with_th
   assert [(r["step"], r["episode_return"], r["wall_s"], r["episode_length"]) for r in rows] == [
       ("10", "1.5", "2.0", ""), ("40", "7.0", rows[1]["wall_s"], "125")]
   assert float(rows[1]["updates_per_s"]) > 0 and rows[0]["agent_steps_per_s"] == "5.0"
+
+
+def test_update_metrics_reach_the_sinks_every_log_every_steps_between_episodes(tmp_path):
+  out = str(tmp_path / "run")
+  os.makedirs(out)
+  cfg = loop.TrainConfig(out_dir=out, steps=400, seeds=(0, 1), loggers=("csv", "tensorboard"))
+  specs = cfg.agents()
+  metrics = {"critic_loss": np.array([0.5, 1.5], np.float32),
+             "q": np.array([2.0, np.nan], np.float32)}
+  with runlog.RunLog(cfg, specs, None, 0, False, progress=False, episode_length=125) as log:
+    log.wall = lambda: 4.0
+    every = log.every
+    assert 1 < every < cfg.steps
+    log.report(0, every - 1, [], metrics=None)               # not due: nothing logged
+    log.report(every - 1, every, [], updates=80, metrics=metrics)  # due, no episode ended
+    log.report(every, 2 * every, [(2 * every, 0, 3.0, metrics)], updates=160,
+               metrics=metrics)                             # due: agent 0's episode row
+  names = loggers.run_names(specs)
+  tb = [read_tensorboard(os.path.join(out, loggers.TENSORBOARD_DIR, n)) for n in names]
+  assert tb[0]["train/critic_loss"] == [(every, 0.5), (2 * every, 0.5)]
+  assert tb[1]["train/critic_loss"] == [(every, 1.5), (2 * every, 1.5)]
+  assert "train/q" not in tb[1] and tb[0]["train/q"] == [(every, 2.0), (2 * every, 2.0)]
+  assert tb[0]["perf/updates_per_s"] == [(every, 20.0), (2 * every, 40.0)]
+  assert tb[1]["perf/transitions_per_s"] == [(every, every * 2 / 4.0),
+                                             (2 * every, 2 * every * 2 / 4.0)]
+  assert tb[0]["episode/return"] == [(2 * every, 3.0)]      # episodes only where they end

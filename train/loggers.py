@@ -21,6 +21,9 @@ What is written, per agent, against the training step per agent (transitions):
   `agent_steps_per_s`) and `perf/updates_per_s` (gradient updates of all agents
   per second of that loop, counted by the learner: `sac.AgentState.step`; 0
   during the warm-up; log.csv's `updates_per_s`);
+- every `log_every` steps (when the progress moves), for every agent whose episodes
+  did not end there: the same `train/*` update means and `perf/*` speeds, so the
+  losses are logged between episodes too (`RunLog.report`);
 - at each evaluation during training (`--eval-every`): `eval/<condition>` (the mean
   held-out return), `eval/train` (the return at the agent's training looks) and
   `eval/e_g/<condition>` (E_G, where defined);
@@ -171,6 +174,14 @@ def episode_values(row: dict, metrics: dict, agent: int, returns: list[float]) -
                                                             "updates_per_s")):
     if row.get(field, "") != "":
       values[tag] = float(row[field])
+  return dict(values, **train_values(metrics, agent))
+
+
+def train_values(metrics: dict, agent: int) -> dict:
+  """The learner's latest update means of one agent as `train/<name>` scalars
+  (metrics: name → (K,) means; NaN ones, no update yet, left out)."""
+  import numpy as np
+  values = {}
   for name in TRAIN_METRICS:
     if name in metrics:
       v = float(np.mean(metrics[name][agent]))

@@ -346,10 +346,13 @@ def train(cfg: TrainConfig | Plan, resume: bool = False, progress: bool = True,
     curve = stack.enter_context(eval_curve.EvalCurve(plan, start, resume))
     step, updates_before = start, train_step.update_count(learner)
     for before, step, episodes, learner in steps:   # the stepper ends at `steps`
-      # The updates this segment has run, read where episodes end (the drivers
-      # then wait for the learner anyway).
-      updates = train_step.update_count(learner) - updates_before if episodes else None
-      log.report(before, step, episodes, updates)
+      # The updates this segment has run and the latest update metrics, read where
+      # episodes end or the log is due (the drivers then wait for the learner anyway).
+      due = log.due(before, step)
+      updates = (train_step.update_count(learner) - updates_before
+                 if episodes or due else None)
+      log.report(before, step, episodes, updates,
+                 jax.device_get(learner.metrics) if due else None)
       if crossed(cfg.checkpoint_every, before, step) or step >= cfg.steps or log.stopped:
         checkpoint.save(manager, step, learner.agents, learner.key)
         log.checkpointed(step)

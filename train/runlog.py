@@ -219,19 +219,23 @@ class RunLog:
       self._bar.update(min(step, self.cfg.steps) - self._bar.n)
     return row
 
-  def report(self, before: int, step: int, episodes, updates: int | None = None) -> None:
+  def report(self, before: int, step: int, episodes, updates: int | None = None,
+             metrics: dict | None = None) -> None:
     """The one call a driver makes per step (or chunk) that moved the run from
     `before` to `step`: each finished episode (step, agent, return, update
     metrics) logged, the sinks given each agent's episodes per step
-    (`dmcr_jax.train.loggers.episode_values`), then the progress when `due`.
+    (`dmcr_jax.train.loggers.episode_values`), then, when `due`, the progress and
+    the sinks given every agent's latest update metrics and speeds at `step`
+    (so the losses are logged every `log_every` steps, not only where episodes end).
     `updates`: the gradient updates all agents have run in this segment by
-    `step` (the learner's count; None: not known)."""
-    from dmcr_jax.train.loggers import episode_values
+    `step` (the learner's count; None: not known). `metrics`: name → (K,) latest
+    update means at `step` (None: not read at this step)."""
+    from dmcr_jax.train.loggers import episode_values, train_values
     wall = self.wall()
     ended: dict[tuple[int, int], list] = {}
-    for at, agent, episode_return, metrics in episodes:
-      row = self.episode(at, agent, episode_return, wall, metrics, updates)
-      ended.setdefault((at, agent), []).append((row, metrics))
+    for at, agent, episode_return, episode_metrics in episodes:
+      row = self.episode(at, agent, episode_return, wall, episode_metrics, updates)
+      ended.setdefault((at, agent), []).append((row, episode_metrics))
     for (at, agent), done in ended.items():
       values = episode_values(done[-1][0], done[-1][1], agent,
                               [r["episode_return"] for r, _ in done])
@@ -239,6 +243,15 @@ class RunLog:
         sink.scalars(agent, at, values)
     if self.due(before, step):
       self.progress(step)
+      if metrics is not None:
+        perf = {"perf/transitions_per_s": (step - self.start) * len(self.specs)
+                / max(wall, 1e-9)}
+        if updates is not None:
+          perf["perf/updates_per_s"] = updates / max(wall, 1e-9)
+        for agent in range(len(self.specs)):
+          if (step, agent) not in ended:
+            for sink in self.sinks:
+              sink.scalars(agent, step, dict(perf, **train_values(metrics, agent)))
 
   def evaluated(self, rows) -> None:
     """An evaluation during training (`dmcr_jax.train.eval_curve.EvalCurve.evaluate`'s
