@@ -168,13 +168,19 @@ def episode_values(row: dict, metrics: dict, agent: int, returns: list[float]) -
   transitions and gradient updates per second (each where the row has it), and
   the learner's update metrics (name → (K,) means; NaN ones left out)."""
   import numpy as np
-  values = {"episode/return": float(np.mean(returns)),
-            "perf/transitions_per_s": float(row["agent_steps_per_s"])}
-  for tag, field in (("episode/length", "episode_length"), ("perf/updates_per_s",
-                                                            "updates_per_s")):
-    if row.get(field, "") != "":
-      values[tag] = float(row[field])
+  values = {"episode/return": float(np.mean(returns)), **perf_values(row)}
+  if row.get("episode_length", "") != "":
+    values["episode/length"] = float(row["episode_length"])
   return dict(values, **train_values(metrics, agent))
+
+
+def perf_values(row: dict) -> dict:
+  """A log.csv row's speeds (`RunLog.speeds`) as `perf/transitions_per_s` and, where
+  the row has it, `perf/updates_per_s`."""
+  values = {"perf/transitions_per_s": float(row["agent_steps_per_s"])}
+  if row.get("updates_per_s", "") != "":
+    values["perf/updates_per_s"] = float(row["updates_per_s"])
+  return values
 
 
 def train_values(metrics: dict, agent: int) -> dict:

@@ -201,13 +201,9 @@ class RunLog:
     self.recent.append(episode_return)
     row = dict(step=step, agent=agent, seed=self.specs[agent][0], aug=self.specs[agent][1],
                episode_return=episode_return, wall_s=round(self.offset + wall, 2),
-               agent_steps_per_s=round((step - self.start) * len(self.specs)
-                                       / max(wall, 1e-9), 1))
+               **self.speeds(step, wall, updates))
     if self.episode_length is not None:
       row["episode_length"] = int(self.episode_length)
-    if updates is not None:
-      # Four significant digits: a slow run's fraction of an update per second too.
-      row["updates_per_s"] = float(f"{updates / max(wall, 1e-9):.4g}")
     if self.looks is not None:
       row["looks"] = self.looks[agent]
     for f in self.metric_fields:
@@ -218,6 +214,17 @@ class RunLog:
     if self._bar is not None and step > self._bar.n:
       self._bar.update(min(step, self.cfg.steps) - self._bar.n)
     return row
+
+  def speeds(self, step: int, wall: float, updates: int | None = None) -> dict:
+    """log.csv's speed fields at `step` after `wall` seconds of this segment:
+    `agent_steps_per_s` (transitions of all agents per second) and, when the
+    segment's `updates` are known, `updates_per_s` (four significant digits: a
+    slow run's fraction of an update per second too)."""
+    out = dict(agent_steps_per_s=round((step - self.start) * len(self.specs)
+                                       / max(wall, 1e-9), 1))
+    if updates is not None:
+      out["updates_per_s"] = float(f"{updates / max(wall, 1e-9):.4g}")
+    return out
 
   def report(self, before: int, step: int, episodes, updates: int | None = None,
              metrics: dict | None = None) -> None:
@@ -230,7 +237,7 @@ class RunLog:
     `updates`: the gradient updates all agents have run in this segment by
     `step` (the learner's count; None: not known). `metrics`: name → (K,) latest
     update means at `step` (None: not read at this step)."""
-    from dmcr_jax.train.loggers import episode_values, train_values
+    from dmcr_jax.train.loggers import episode_values, perf_values, train_values
     wall = self.wall()
     ended: dict[tuple[int, int], list] = {}
     for at, agent, episode_return, episode_metrics in episodes:
@@ -244,10 +251,7 @@ class RunLog:
     if self.due(before, step):
       self.progress(step)
       if metrics is not None:
-        perf = {"perf/transitions_per_s": (step - self.start) * len(self.specs)
-                / max(wall, 1e-9)}
-        if updates is not None:
-          perf["perf/updates_per_s"] = updates / max(wall, 1e-9)
+        perf = perf_values(self.speeds(step, wall, updates))
         for agent in range(len(self.specs)):
           if (step, agent) not in ended:
             for sink in self.sinks:
