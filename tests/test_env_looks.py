@@ -8,18 +8,13 @@ import pytest
 
 from dmcr_jax.env_looks import static_looks, vary_key
 from dmcr_jax.visuals import render_model as rmod
-from dmcr_jax.visuals import textures as T
+from tests.banks import procedural_bank
 
 
 @pytest.fixture(scope="module")
 def rm():
   """walker's render model with a small bank (3 floors, 3 skies)."""
-  bank = T.TextureBank(
-      floors=np.stack([T.procedural_floor(i) for i in (0, 7, 10)]),
-      backgrounds=np.stack([T.procedural_background(i) for i in (0, 1, 2)]),
-      floor_names=tuple(T.floor_name(i) for i in (0, 7, 10)),
-      background_names=tuple(T.background_name(i) for i in (0, 1, 2)),
-      source="env-looks-test-bank")
+  bank = procedural_bank((0, 7, 10), (0, 1, 2), "env-looks-test-bank")
   return rmod.build_render_model("walker", bank)
 
 

@@ -19,7 +19,7 @@ from dmcr_jax.benchmarks import jax_render_parity as parity
 from dmcr_jax.visuals import jax_render as JR
 from dmcr_jax.visuals import jax_render_scene as JS
 from dmcr_jax.visuals import render_model as RM
-from dmcr_jax.visuals import textures as T
+from tests.banks import procedural_bank
 
 # --------------------------------------------------------------------------
 # Intersections against a NumPy reference (root finding along the ray)
@@ -154,12 +154,7 @@ def test_normals_are_unit_and_outward():
 def bank():
   floors = [0, 7]
   skies = [0, 1]
-  return T.TextureBank(
-      floors=np.stack([T.procedural_floor(i) for i in floors]),
-      backgrounds=np.stack([T.procedural_background(i) for i in skies]),
-      floor_names=tuple(T.floor_name(i) for i in floors),
-      background_names=tuple(T.background_name(i) for i in skies),
-      source="jax-render-test-bank")
+  return procedural_bank(floors, skies, "jax-render-test-bank")
 
 
 def _setup(domain, bank, seeds):

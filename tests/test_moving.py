@@ -19,7 +19,7 @@ from dmcr_jax.visuals import jax_render as JR
 from dmcr_jax.visuals import jax_render_scene as JS
 from dmcr_jax.visuals import moving as M
 from dmcr_jax.visuals import render_model as rmod
-from dmcr_jax.visuals import textures as T
+from tests.banks import procedural_bank
 
 # One worker runs the module, so that its module fixtures (two pool env rollouts) are
 # built once and not in each xdist worker that gets one of their tests.
@@ -31,12 +31,7 @@ ALL = M.MOVING_FACTORS
 @pytest.fixture(scope="module")
 def pendulum():
   """pendulum's render model and scene with a small bank (3 floors, 3 skies)."""
-  bank = T.TextureBank(
-      floors=np.stack([T.procedural_floor(i) for i in (0, 7, 10)]),
-      backgrounds=np.stack([T.procedural_background(i) for i in (0, 1, 2)]),
-      floor_names=tuple(T.floor_name(i) for i in (0, 7, 10)),
-      background_names=tuple(T.background_name(i) for i in (0, 1, 2)),
-      source="moving-test-bank")
+  bank = procedural_bank((0, 7, 10), (0, 1, 2), "moving-test-bank")
   rm = rmod.build_render_model("pendulum", bank)
   return rm, JS.build_scene(rm)
 

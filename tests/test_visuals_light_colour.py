@@ -26,7 +26,7 @@ from dmcr_jax.visuals import jax_render_scene as JS
 from dmcr_jax.visuals import params as P
 from dmcr_jax.visuals import ranges as R
 from dmcr_jax.visuals import render_model as RM
-from dmcr_jax.visuals import textures as T
+from tests.banks import procedural_bank
 
 COLOUR = ("light_diffuse", "light_specular")
 
@@ -164,12 +164,7 @@ def test_deterministic_jit_and_batch_independent():
 
 @pytest.fixture(scope="module")
 def bank():
-  return T.TextureBank(
-      floors=np.stack([T.procedural_floor(i) for i in (0, 7)]),
-      backgrounds=np.stack([T.procedural_background(i) for i in (0, 1)]),
-      floor_names=tuple(T.floor_name(i) for i in (0, 7)),
-      background_names=tuple(T.background_name(i) for i in (0, 1)),
-      source="light-colour-test-bank")
+  return procedural_bank((0, 7), (0, 1), "light-colour-test-bank")
 
 
 def test_render_model_applies_and_resets_the_colour(bank):

@@ -20,7 +20,7 @@ from dmcr_jax import visuals as V
 from dmcr_jax.models.names import suite_model
 from dmcr_jax.visuals import jax_render_scene as JS
 from dmcr_jax.visuals import render_model as RM
-from dmcr_jax.visuals import textures as T
+from tests.banks import procedural_bank
 
 # domain: (camera, the original's default pos, its default orientation as MJCF
 #          (attribute, value), its ranges of x, y, z), from its MJCF and get_model.
@@ -58,12 +58,7 @@ N = 512
 @pytest.fixture(scope="module")
 def bank():
   """A two-texture bank (the textures play no part here; small is fast)."""
-  return T.TextureBank(
-      floors=np.stack([T.procedural_floor(i) for i in (0, 1)]),
-      backgrounds=np.stack([T.procedural_background(i) for i in (0, 1)]),
-      floor_names=tuple(T.floor_name(i) for i in (0, 1)),
-      background_names=tuple(T.background_name(i) for i in (0, 1)),
-      source="test-bank-camera")
+  return procedural_bank((0, 1), (0, 1), "test-bank-camera")
 
 
 def compiled_cameras(orientations):

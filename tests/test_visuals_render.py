@@ -17,9 +17,10 @@ from mujoco import mjx
 from dmcr_jax import visuals as V
 from dmcr_jax.visuals import render_model as RM
 from dmcr_jax.visuals import show
-from dmcr_jax.visuals import textures as T
 from dmcr_jax.visuals.moving import check_moving, look_at
 from dmcr_jax.models.names import suite_model
+from dmcr_jax.visuals import textures as T
+from tests.banks import procedural_bank
 
 TASKS = {"ball_in_cup": "catch", "cartpole": "swingup", "cheetah": "run",
          "finger": "spin", "fish": "swim", "hopper": "hop", "humanoid": "walk",
@@ -31,12 +32,7 @@ H, W = 64, 80
 def bank():
   floors = [0, 3, 7, 10]                       # grass, gravel, brick, leaves
   skies = [0, 1, 2]
-  return T.TextureBank(
-      floors=np.stack([T.procedural_floor(i) for i in floors]),
-      backgrounds=np.stack([T.procedural_background(i) for i in skies]),
-      floor_names=tuple(T.floor_name(i) for i in floors),
-      background_names=tuple(T.background_name(i) for i in skies),
-      source="test-bank")
+  return procedural_bank(floors, skies, "test-bank")
 
 
 def dm_reference(domain, seed=1):
