@@ -273,6 +273,13 @@ class ArrayReader:
     """Sky texel bytes at flat `index` (the scene's `skies`, flattened)."""
     return self.skies[index]
 
+  def fence(self, values):
+    """`values` (a pytree) unchanged, behind `lax.optimization_barrier`: XLA fuses
+    the per-pixel graph on either side of a fence separately, which keeps its
+    fusion pass's graphs small (the same numbers; a compile-time and speed
+    matter only)."""
+    return jax.lax.optimization_barrier(values)
+
 
 def _obj_numbers(read):
   """An object's position, frame, size, rgba, specular, shininess and emission, from

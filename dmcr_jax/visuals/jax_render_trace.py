@@ -163,6 +163,10 @@ def trace_pixels(L: Layout, R, pix, *, height: int, width: int, shadows: bool,
   d, dz = _camera_rays(L, R, pix, height, width, supersample)
   o = tuple(R.f(L.cam + i) for i in range(3))
   (t_o, k_op), seg, (t_1, k_t1), (t_2, k_t2) = _primary(L, R, o, d, dz, running=running)
+  # Fences (`R.fence`) after the primary hits, each shadow ray, the reflection ray
+  # and the opaque colour cut the per-pixel graph into the pieces XLA fuses.
+  (t_o, k_op, seg, t_1, k_t1, t_2, k_t2, d, dz) = R.fence((t_o, k_op, seg, t_1, k_t1,
+                                                           t_2, k_t2, d, dz))
   present = sorted(set(L.types))
   floor_obj = L.floor_obj
   nl = L.num_lights
@@ -227,7 +231,7 @@ def trace_pixels(L: Layout, R, pix, *, height: int, width: int, shadows: bool,
         to = (to[0] / safe, to[1] / safe, to[2] / safe)
       origin = _add(p, _scale(n, 1e-4))
       tmin, _ = _nearest(L, R, origin, to, running=running, casters=True)
-      vis.append((tmin >= maxd).astype(jnp.float32))
+      vis.append(R.fence((tmin >= maxd).astype(jnp.float32)))
     return vis
 
   def when(pred, fn, *args):
@@ -263,7 +267,7 @@ def trace_pixels(L: Layout, R, pix, *, height: int, width: int, shadows: bool,
     def reflect(color):
       rd = _sub(d, _scale(n, 2 * _dot(d, n)))
       ro = _add(p, _scale(n, 1e-4))
-      t_r, k_r = _nearest(L, R, ro, rd, running=running, skip=floor_obj)
+      t_r, k_r = R.fence(_nearest(L, R, ro, rd, running=running, skip=floor_obj))
       rhit = (t_r < INF) & floor_px
       rp, _, rn, robj = surface(k_r, jnp.where(rhit, t_r, 0.0), ro, rd)
       refl = R.f(L.floor)
@@ -276,7 +280,7 @@ def trace_pixels(L: Layout, R, pix, *, height: int, width: int, shadows: bool,
                    for c, r in zip(color, rc))
     return when(jnp.max(floor_px.astype(jnp.float32)) > 0, reflect, color)
 
-  color = when(jnp.min(t_o) < INF, opaque)
+  color = R.fence(when(jnp.min(t_o) < INF, opaque))
   sky = when(jnp.max(t_o) >= INF, lambda: _sky_color(L, R, d))
   color = tuple(jnp.where(hit, c, s) for c, s in zip(color, sky))
 
