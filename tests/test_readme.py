@@ -30,9 +30,9 @@ import pytest
 # Snippets that compile the same programs (the README's walker task and pool env and
 # docs/tasks.md's and docs/envs.md's; the protocol passes of docs/protocol.md; the
 # cartpole ray-caster envs) share an xdist group: one worker runs them one after
-# another, so that each loads the others' compiled programs from the session's
-# compilation cache instead of compiling them side by side. The groups themselves run
-# on whichever worker is free.
+# another in its snippet runner, so that each reuses the others' compiled programs (in
+# the runner's memory, or from the session's compilation cache) instead of compiling
+# them side by side. The groups themselves run on whichever worker is free.
 def group(code: str) -> str:
   """The xdist group of a snippet: by the programs it compiles."""
   if "protocol." in code:
@@ -93,8 +93,9 @@ def distinct(blocks: list[tuple[str, str]]) -> list[tuple[str, str]]:
 
 BLOCKS = python_blocks()
 IDS = [where for where, _ in BLOCKS]
+# By group, so that a test process runs a group's snippets one after another.
 RUNS = [pytest.param(where, code, id=where, marks=pytest.mark.xdist_group(group(code)))
-        for where, code in distinct(BLOCKS)]
+        for where, code in sorted(distinct(BLOCKS), key=lambda block: group(block[1]))]
 
 # The snippet runner: reads one JSON request a line from stdin ({"code", "where",
 # "cwd", "clear"}), runs the code as a script of its own (fresh globals, `cwd` as
