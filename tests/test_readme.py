@@ -165,6 +165,7 @@ class SnippetRunner:
       self.proc.kill()
       self.proc.wait()
       self.proc = None
+      self.log.close()
 
 
 @pytest.fixture(scope="module")
