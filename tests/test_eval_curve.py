@@ -7,6 +7,7 @@ import csv
 import dataclasses
 import os
 
+import jax
 import pytest
 
 from dmcr_jax import protocol
@@ -87,6 +88,9 @@ def test_eval_curve_returns_equal_the_protocol_on_the_checkpointed_agents(eval_r
   for step in (24, 48):
     _, agents, at = checkpoint.load_run(cfg.out_dir, step)
     assert at == step
+    # On the device, as the learner's agents are (committed there): the protocol then
+    # lowers to the curve's program, which the run compiled already.
+    agents = jax.device_put(agents, jax.devices()[0])
     result = protocol.evaluate(
         cfg.task, greedy_policy, policy_params(agents, [0]), agents=1, renderer="jax",
         visual_seeds=2, dynamics_seeds=1, train_episodes=2, conditions=("none", "all"),
