@@ -137,18 +137,15 @@ def test_mjx_trajectories_identical_for_any_look(bank):
       return d, (d.qpos, d.qvel)
     return jax.lax.scan(step, d, ctrl)[1]
 
-  # dm_control's initial state of the task (MuJoCo C: no MJX reset to compile).
-  env = suite.load("cartpole", "swingup", task_kwargs={"random": 0})
-  env.reset()
-  qpos = np.asarray(env.physics.data.qpos, np.float32)
-  qvel = np.asarray(env.physics.data.qvel, np.float32)
+  key = jax.random.key(0)
+  state = jax.jit(task.reset)(key)  # eager MJX runs op by op: far slower
   ctrl = jax.random.uniform(jax.random.key(1), (30, task.action_size), minval=-1, maxval=1)
-  ref = rollout(task.mjx_model, qpos, qvel, ctrl)
+  ref = rollout(task.mjx_model, state.data.qpos, state.data.qvel, ctrl)
   # A varied look of the whole bank, and one of a subset of it.
   small = bank.subset([1], [2])
   for rm, idx in ((V.build_render_model("cartpole", bank), 1),
                   (V.build_render_model("cartpole", small), 3)):
-    out = rollout(mjx_model(rm, idx), qpos, qvel, ctrl)
+    out = rollout(mjx_model(rm, idx), state.data.qpos, state.data.qvel, ctrl)
     for a, b in zip(out, ref):
       np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
