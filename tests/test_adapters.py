@@ -38,7 +38,7 @@ def test_gymnasium_env_checker_passes():
 def test_vector_env_spaces_and_api():
   # Sized as test_env's memory test (same group): one physics compilation for both.
   with dmcr_jax.make("pendulum-swingup", num_envs=2, visual_seeds=dmcr_jax.TEST_SEEDS,
-                     frame_skip=1, image_size=16, workers=1) as env:
+                     frame_skip=100, image_size=16, workers=1) as env:
     assert isinstance(env, gymnasium.vector.VectorEnv)
     assert env.metadata["autoreset_mode"] == gymnasium.vector.AutoresetMode.NEXT_STEP
     obs, info = env.reset(seed=0)

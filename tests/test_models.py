@@ -63,6 +63,9 @@ STATE_ATOL = 1e-4
 B = 4
 STEPS_FROM_RESET = 100
 """Steps a random episode runs from its reset before it jumps to its end (`test_random_episode`)."""
+STEPS_AT_END = 10
+"""Steps a random episode runs up to its time limit (after the jump), and the steps
+of a task whose physics another task's episode ran (`test_random_episode`)."""
 
 
 @functools.cache
@@ -220,16 +223,16 @@ def test_random_episode(name):
   tracing caches are bounded, and MJX traces fill them.)
 
   The first task of each physics group runs its first `STEPS_FROM_RESET` steps,
-  then its step counter jumps to the last 50 steps of the episode (1,000 steps:
-  a whole one takes up to 0.1 s a step on two CPU cores); the others, whose
-  physics is the same, run 50 steps from their own reset.
+  then its step counter jumps to the last `STEPS_AT_END` steps of the episode
+  (1,000 steps: a whole one takes up to 0.1 s a step on two CPU cores); the
+  others, whose physics is the same, run `STEPS_AT_END` steps from their own reset.
   """
   h = harness(name)
   task = h.task
   s = h.reset(jax.random.split(jax.random.key(3), B))
   structure, types = jax.tree.structure(s), _types(s)
-  steps = task.time_limit if _first_of_its_physics(task) else 50
-  jump = STEPS_FROM_RESET if steps > STEPS_FROM_RESET + 50 else None
+  steps = task.time_limit if _first_of_its_physics(task) else STEPS_AT_END
+  jump = STEPS_FROM_RESET if steps > STEPS_FROM_RESET + STEPS_AT_END else None
   rng = np.random.RandomState(4)
   actions = rng.uniform(task.action_low, task.action_high,
                         (steps, B, task.action_size)).astype(np.float32)
@@ -238,7 +241,7 @@ def test_random_episode(name):
     if t == 1:
       traces = (h.traces, h.physics.traces)
     if t == jump:
-      t = task.time_limit - 50
+      t = task.time_limit - STEPS_AT_END
       s = s.replace(step_count=jnp.full_like(s.step_count, t))
     s = h.step(s, actions[t])
     obs, reward, done = jax.device_get((s.obs, s.reward, s.done))
@@ -315,6 +318,7 @@ def _dot_precisions(lowered_text: str) -> list[str]:
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("cheetah")
 def test_physics_products_traced_in_float32():
   """Every matrix product of reset and step is traced at HIGHEST precision.
 
@@ -322,18 +326,29 @@ def test_physics_products_traced_in_float32():
   made MJX drift from dm_control by orders of magnitude (base module docstring);
   a CPU computes float32 either way, so the traced precision is what is checked.
   Cheetah's reset runs `mjx.forward` and physics steps in its `initialize`.
+  `Task.reset` and `Task.step` are compositions of the jitted parts that the
+  cheetah tests call (`test_composed_matches_task`): each part is lowered at the
+  arguments those tests gave it, so its trace is theirs (in the cheetah group).
   """
-  task = models.load("cheetah-run")
+  h = harness("cheetah-run")
+  task = h.task
+  keys = jax.random.split(jax.random.key(3), B)
+  data, info = h.initialize(keys)
+  forwarded = h.physics.forward(data)
+  state = h.first_state(forwarded, info)
+  action = jnp.zeros((B, task.action_size), jnp.float32)
+  advanced = h.physics.advance(state.data, action)
+  parts = (h.initialize.lower(keys), h.physics.forward.lower(data),
+           h.first_state.lower(forwarded, info), h.physics.advance.lower(state.data, action),
+           h.next_state.lower(state, advanced))
+  products = []
+  for lowered in parts:
+    products += _dot_precisions(lowered.as_text())
+  assert products, "no matrix products found: the check would pass vacuously"
+  assert set(products) == {"[HIGHEST, HIGHEST]"}, sorted(set(products))
+  # Both halves have products of their own: reset's (initialize, forward) and step's.
+  assert _dot_precisions(parts[0].as_text()) and _dot_precisions(parts[3].as_text())
   keys = jax.random.split(jax.random.key(0), 2)
-  # Lowered only, never compiled; reset is traced once, for its text and the state's
-  # shapes (an MJX trace takes seconds).
-  reset = jax.jit(jax.vmap(task.reset)).trace(keys)
-  state = reset.out_info
-  action = jax.ShapeDtypeStruct((2, task.action_size), jnp.float32)
-  for traced in (reset, jax.jit(jax.vmap(task.step)).trace(state, action)):
-    precisions = _dot_precisions(traced.lower().as_text())
-    assert precisions, "no matrix products found: the check would pass vacuously"
-    assert set(precisions) == {"[HIGHEST, HIGHEST]"}, sorted(set(precisions))
   # The check itself, on pendulum (the cheapest physics to trace): a bare MJX step
   # outside the tasks' wrappers is not HIGHEST; the diagnostic switch of the
   # benchmarks reaches the physics, and only inside its block.

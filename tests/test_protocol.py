@@ -6,7 +6,9 @@ is deterministic and compiles once; K agents in one pass equal K single passes; 
 policies and options are refused before anything compiles, bad actions after the pass.
 
 Tiny sizes: cartpole-balance at action repeat 100 (10 agent steps an episode), 16 px
-frames, 2 held-out looks × 2 initial states. The test policy reads four pixels of its
+frames, 2 held-out looks × 2 initial states; the ray caster's passes and the env they
+are checked against draw without shadows and reflections (`RAY`: smaller programs,
+the same looks). The test policy reads four pixels of its
 own observation with elementwise arithmetic (no matrix product, whose rounding on a
 CPU depends on the batch size), so returns can be compared exactly across batch
 layouts.
@@ -34,6 +36,8 @@ TASK = "cartpole-balance"
 OPTS = dict(visual_seeds=2, dynamics_seeds=2, train_episodes=3,
             conditions=("none", "floor", "all"), train_look=5, image_size=16,
             action_repeat=100, seed=0)
+RAY = dict(shadows=False, reflection=False)
+"""The ray caster's options of the passes and the host-stepped env they are checked against."""
 
 
 def pixel_policy(params, obs, key):
@@ -80,7 +84,7 @@ def old_path(params, renderer="jax", **render):
 @pytest.fixture(scope="module")
 def single():
   """The planned protocol of one agent and its pass with `make_params()`."""
-  proto = P.prepare(TASK, pixel_policy, **OPTS)
+  proto = P.prepare(TASK, pixel_policy, **RAY, **OPTS)
   return proto, proto(make_params())
 
 
@@ -155,7 +159,7 @@ def test_bad_options_are_refused_naming_the_valid_ones(options, match, monkeypat
 @pytest.mark.slow
 def test_returns_equal_the_host_stepped_env(single):
   _, result = single
-  want = old_path(make_params())
+  want = old_path(make_params(), **RAY)
   np.testing.assert_allclose(result.train[0], want["train"], rtol=1e-6)
   for c in OPTS["conditions"]:
     np.testing.assert_allclose(result.returns[c][0], want[c], rtol=1e-6)
@@ -195,7 +199,7 @@ def two_agents():
   (30 envs a block: 2 pad); one compilation serves the K-agent and the padding test."""
   params = [make_params(seed=s, noise=0.3) for s in (1, 2)]
   stacked = jax.tree.map(lambda *x: jnp.stack(x), *params)
-  proto = P.prepare(TASK, pixel_policy, agents=2, render_chunk=4, **OPTS)
+  proto = P.prepare(TASK, pixel_policy, agents=2, render_chunk=4, **RAY, **OPTS)
   return params, proto, proto(stacked)
 
 

@@ -8,7 +8,7 @@ before anything compiles, naming the valid ones; the report's rows say factor an
 intensity.
 
 Tiny sizes: cartpole-balance at action repeat 100 (10 agent steps an episode), 16 px
-frames, 2 held-out looks × 1 initial state. The policy reads four pixels with
+frames, 2 held-out looks × 2 initial states. The policy reads four pixels with
 elementwise arithmetic, so returns compare exactly across batch layouts.
 """
 
@@ -24,8 +24,12 @@ from dmcr_jax import protocol as P
 from dmcr_jax import protocol_pool, protocol_report
 from tests.host_episodes import host_episode_returns
 
+# In test_protocol's group, with its sizes (4 envs a condition): the host-stepped pool
+# envs step the physics that its host-stepped pool env compiled.
+pytestmark = pytest.mark.xdist_group("protocol")
+
 TASK = "cartpole-balance"
-OPTS = dict(visual_seeds=2, dynamics_seeds=1, train_episodes=2, train_look=0,
+OPTS = dict(visual_seeds=2, dynamics_seeds=2, train_episodes=2, train_look=0,
             image_size=16, action_repeat=100, seed=0)
 MOVING = {"moving-camera@0.5": ("camera", 0.5), "moving-all@0.3": ("all", 0.3)}
 
@@ -94,7 +98,7 @@ def test_moving_conditions_return_what_the_host_stepped_moving_env_returns():
 
 @pytest.mark.slow
 def test_the_pool_runs_moving_conditions_as_the_host_stepped_moving_pool_env():
-  # A block of two motions: two pool envs of 2 envs each, as the host's.
+  # A block of two motions: two pool envs of 4 envs each, as the host's.
   conditions = ("none", "moving-camera@0.5")
   render = dict(quality="fastest", workers=1)
   result = P.evaluate(TASK, policy, PARAMS, renderer="pool", conditions=conditions,
