@@ -216,6 +216,27 @@ def test_tiny_scene_known_image(bank):
   assert np.all(ids[0] == -1) and np.all(ids[-1] == 0) and cart in ids[6:10, 6:10]
 
 
+def test_fences_leave_the_render_unchanged(bank, monkeypatch):
+  """The fenced per-pixel graph (`ArrayReader.fence`, on by default off the CPU) draws
+  what the unfenced one draws: the same colours to float rounding and the same ids,
+  on a scene with shadows, the floor's reflection and several lights."""
+  from dmcr_jax.visuals import jax_render_pack
+  rm, scene, looks, dl = _setup("walker", bank, [3])
+  bp = _poses(rm, rm.model.qpos0)
+  draws = {}
+  for fences in (False, True):
+    monkeypatch.setattr(jax_render_pack, "fences_by_default", lambda f=fences: f)
+    lowered = jax.jit(lambda b, l: JR._render(  # a fresh trace for each setting
+        scene, b, l, None, height=12, width=12, shadows=True, reflection=True,
+        supersample=1)).lower(bp, dl.take(0))
+    assert ("optimization_barrier" in lowered.as_text()) == fences
+    draws[fences] = lowered.compile()(bp, dl.take(0))
+  (c0, ids0), (c1, ids1) = draws[False], draws[True]
+  np.testing.assert_allclose(np.asarray(c1), np.asarray(c0), rtol=0, atol=1e-5)
+  np.testing.assert_array_equal(np.asarray(ids1), np.asarray(ids0))
+  assert np.ptp(np.asarray(c0)) > 0.1 and len(np.unique(np.asarray(ids0))) > 2
+
+
 @pytest.mark.slow
 def test_jit_vmap_invariance_and_determinism(bank):
   rm, scene, looks, dl = _setup("cartpole", bank, [0, 1, 2])

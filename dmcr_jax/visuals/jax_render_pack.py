@@ -239,6 +239,14 @@ def pack_env(scene: Scene, bp: BodyPoses, look: DeviceLook,
   return floats, ints
 
 
+def fences_by_default() -> bool:
+  """Whether renders traced now fence their per-pixel graph (`ArrayReader.fence`):
+  where the default backend is not the CPU. XLA:CPU compiles the unfenced graph as
+  fast, and unfenced its rounding does not depend on the batch shape the render is
+  compiled for, which exact comparisons between batchings on the CPU rely on."""
+  return jax.default_backend() != "cpu"
+
+
 class ArrayReader:
   """Reads one env's packed numbers and the scene's textures from arrays (XLA).
 
@@ -246,8 +254,9 @@ class ArrayReader:
   the same methods over a GPU kernel's memory references.
   """
 
-  def __init__(self, floats, ints, texels, skies):
+  def __init__(self, floats, ints, texels, skies, fences: bool | None = None):
     self.floats, self.ints, self.texels, self.skies = floats, ints, texels, skies
+    self.fences = fences_by_default() if fences is None else fences
 
   def f(self, i: int):
     """Float `i` of the env (a scalar)."""
@@ -274,11 +283,11 @@ class ArrayReader:
     return self.skies[index]
 
   def fence(self, values):
-    """`values` (a pytree) unchanged, behind `lax.optimization_barrier`: XLA fuses
-    the per-pixel graph on either side of a fence separately, which keeps its
-    fusion pass's graphs small (the same numbers; a compile-time and speed
-    matter only)."""
-    return jax.lax.optimization_barrier(values)
+    """`values` (a pytree) unchanged; with `fences`, behind
+    `lax.optimization_barrier`: XLA then fuses the per-pixel graph on either side
+    of a fence separately, which keeps its GPU fusion pass's graphs small (the
+    same function; a compile-time and speed matter only)."""
+    return jax.lax.optimization_barrier(values) if self.fences else values
 
 
 def _obj_numbers(read):
