@@ -44,9 +44,9 @@ if sys.argv[1] == "wait":
   time.sleep(600)
 """
 # (how the script ends, whether it resets its envs, the signal its process group
-# gets, its exit status); resetting costs each script a compilation, so two do.
+# gets, its exit status); resetting costs each script a compilation.
 ENDINGS = {"end": ("end", "reset", None, 0), "raise": ("raise", "made", None, 1),
-           "sigint": ("wait", "made", signal.SIGINT, -signal.SIGINT),
+           "sigint": ("wait", "reset", signal.SIGINT, -signal.SIGINT),
            "sigterm": ("wait", "reset", signal.SIGTERM, 128 + signal.SIGTERM)}
 START_S = 900   # building the envs on a busy 2-core machine
 EXIT_S = 30     # from the end of the script (or the signal) to the process's exit; generous, as
