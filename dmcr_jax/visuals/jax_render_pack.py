@@ -254,9 +254,9 @@ class ArrayReader:
   the same methods over a GPU kernel's memory references.
   """
 
-  def __init__(self, floats, ints, texels, skies, fences: bool | None = None):
+  def __init__(self, floats, ints, texels, skies):
     self.floats, self.ints, self.texels, self.skies = floats, ints, texels, skies
-    self.fences = fences_by_default() if fences is None else fences
+    self.fences = fences_by_default()
 
   def f(self, i: int):
     """Float `i` of the env (a scalar)."""
