@@ -2,7 +2,7 @@
 
 A `Policy` is ``policy(params, obs, key) -> actions``: uint8 (B, H, W, 3·stack)
 frame stacks to float (B, A) actions in [−1, 1]. `policy_actions` runs it vmapped
-over envs (and over K agents in turn) with per-env keys; `env_actions` maps its
+over envs (each of K agents on its own envs) with per-env keys; `env_actions` maps its
 actions onto the task's bounds; `check_policy` traces it abstractly before anything
 compiles; `worst_action` and `check_actions` catch NaN or out-of-range actions;
 `agent_count` checks params against a leading agent axis; `params_digest` keys a
@@ -40,14 +40,15 @@ POLICY_STREAM = 0x9E3779B9
 
 def policy_actions(policy: Policy, params, obs: jax.Array, index: jax.Array,
                    t: jax.Array, key: jax.Array, agents: int | None) -> jax.Array:
-  """Every env's action: the policy vmapped over envs, one agent after another.
+  """Every env's action: the policy vmapped over envs, each agent on its own envs.
 
   Env e's action is ``policy(params_k, obs[e:e+1], fold_in(fold_in(key, index[e]),
   t))[0]``, so it depends on its own observation and key alone. The vmap over
   envs batches the policy's layers over them (a batch-1 convolution becomes one
-  of the agent's B envs); the K agents run in turn (`lax.map`), so each agent's
-  layers keep their own unbatched weights (a vmap over agents would make grouped
-  convolutions of K groups).
+  of the agent's B envs). The K agents are K separate calls in the program, each
+  on its own params and rows (static slices), so each agent's layers keep their
+  own unbatched weights (a vmap over agents would make grouped convolutions of K
+  groups) and XLA may schedule the K calls together; the program grows with K.
 
   Args:
     policy: the `Policy`.
@@ -66,9 +67,10 @@ def policy_actions(policy: Policy, params, obs: jax.Array, index: jax.Array,
   per_env = jax.vmap(one, in_axes=(None, 0, 0))
   if agents is None:
     return per_env(params, obs, keys)
-  blocks = lambda x: x.reshape((agents, x.shape[0] // agents) + x.shape[1:])
-  actions = jax.lax.map(lambda a: per_env(*a), (params, blocks(obs), blocks(keys)))
-  return actions.reshape((obs.shape[0],) + actions.shape[2:])
+  b = obs.shape[0] // agents
+  rows = lambda x, a: x[a * b:(a + 1) * b]
+  return jnp.concatenate([per_env(jax.tree.map(lambda x: x[a], params), rows(obs, a),
+                                  rows(keys, a)) for a in range(agents)])
 
 
 def worst_action(actions: jax.Array, agents: int) -> jax.Array:
