@@ -22,6 +22,8 @@ sizes, evaluated with `dmcr-evaluate`'s greedy policy):
 
     python -m dmcr_jax.benchmarks.evaluate --task walker-walk --agents 1,4 \\
         --out benchmarks/results/evaluate_h200.jsonl
+    python -m dmcr_jax.benchmarks.evaluate --task walker-walk --agents 1,4 --equal-batch \\
+        --no-baseline --out benchmarks/results/evaluate_h200.jsonl   # K=4 beside K=1, same envs
     python -m dmcr_jax.benchmarks.evaluate --task walker-walk --renderers pool --agents 1 \\
         --visual-seeds 10 --train-episodes 30 --out benchmarks/results/evaluate_h200.jsonl
 
@@ -102,6 +104,16 @@ def env_baseline(task: str, num_envs: int, steps: int, frame_skip: int, frame_st
               agent_steps_per_s=num_envs * steps / t.run_s)
 
 
+def sizes_for(k: int, args) -> tuple[int, int]:
+  """(held-out looks, train episodes) of each of K agents: the options' own, or with
+  `--equal-batch` a K-th of the looks (train episodes at most looks × initial
+  states), so that every K's pass steps as many envs."""
+  if not args.equal_batch:
+    return args.visual_seeds, args.train_episodes
+  looks = args.visual_seeds // k
+  return looks, min(args.train_episodes, looks * args.dynamics_seeds)
+
+
 def bench_protocol(task: str, renderer: str, k: int, args) -> dict:
   """Two passes of the protocol for K agents (the second with other params)."""
   import jax
@@ -109,9 +121,10 @@ def bench_protocol(task: str, renderer: str, k: int, args) -> dict:
   from dmcr_jax.train import evaluate
   render = dict(quality="exact", workers=args.workers) if renderer == "pool" else {}
   conditions = tuple(args.conditions.split(",")) if args.conditions else None
+  visual_seeds, train_episodes = sizes_for(k, args)
   proto = protocol.prepare(task, evaluate.greedy_policy, agents=k, renderer=renderer,
-                           visual_seeds=args.visual_seeds, dynamics_seeds=args.dynamics_seeds,
-                           train_episodes=args.train_episodes, conditions=conditions,
+                           visual_seeds=visual_seeds, dynamics_seeds=args.dynamics_seeds,
+                           train_episodes=train_episodes, conditions=conditions,
                            image_size=args.image_size, frame_stack=args.frame_stack,
                            action_repeat=args.action_repeat, max_envs=args.max_envs, **render)
   first_params = sac_agents(task, k, args.image_size, args.frame_stack, seed=0)
@@ -125,8 +138,8 @@ def bench_protocol(task: str, renderer: str, k: int, args) -> dict:
   run_s = time.perf_counter() - t0
   steps = second.agent_steps
   return dict(task=task, renderer=renderer, agents=k, conditions=list(proto.conditions),
-              visual_seeds=args.visual_seeds, dynamics_seeds=args.dynamics_seeds,
-              train_episodes=args.train_episodes, image_size=args.image_size,
+              visual_seeds=visual_seeds, dynamics_seeds=args.dynamics_seeds,
+              train_episodes=train_episodes, image_size=args.image_size,
               episodes_per_agent=proto.plan.episodes, block_envs=proto.block_envs,
               groups=len(protocol.pool_groups(k, proto.block)) if renderer == "pool" else None,
               blocks=proto.num_blocks, episode_length=proto.episode_length,
@@ -175,6 +188,9 @@ def main(argv=None) -> None:
                  help="envs per block (default: every episode in one block)")
   p.add_argument("--workers", type=int, default=None, help="render workers (pool)")
   p.add_argument("--no-baseline", action="store_true", help="only the protocol's rows")
+  p.add_argument("--equal-batch", action="store_true",
+                 help="K agents share --visual-seeds (a K-th each), so every K steps as "
+                      "many envs; K>1 rows are then set beside the run's K=1 row")
   p.add_argument("--out", default=None, help="JSONL file the rows are appended to")
   a = p.parse_args(argv)
   if a.train_episodes > a.visual_seeds * a.dynamics_seeds:
@@ -183,6 +199,9 @@ def main(argv=None) -> None:
   from dmcr_jax.env_checks import check_renderer_name, default_frame_skip
   renderers = [check_renderer_name(r) for r in a.renderers.split(",")]
   ks = [int(k) for k in a.agents.split(",")]
+  if a.equal_batch and any(a.visual_seeds % k for k in ks):
+    p.error(f"--equal-batch: --visual-seeds ({a.visual_seeds}) must divide by every K in "
+            f"--agents ({a.agents})")
   frame_skip = a.action_repeat or default_frame_skip(a.task)
   rows, baselines = [], {}
   for renderer in renderers:
@@ -211,6 +230,8 @@ def main(argv=None) -> None:
         R.emit(b, a.out)
         rows.append(b)
       base = baselines.get((renderer, n))
+      if a.equal_batch and k > 1 and (renderer, "K=1") in baselines:
+        base = baselines[(renderer, "K=1")]
       unit = "agent-steps/s" if renderer == "jax" else "frames/s"
       r = R.row(own, f"protocol K={k}", n=n, throughput=own["agent_steps_per_s"], unit=unit,
                 compile_s=own["compile_s"], run_s=own["run_s"],
@@ -222,6 +243,8 @@ def main(argv=None) -> None:
         r["ratio"] = r["throughput"] / base["throughput"]
       R.emit(r, a.out)
       rows.append(r)
+      if k == 1:
+        baselines[(renderer, "K=1")] = r
   print(markdown(rows))
   if a.out:
     R.write_markdown(a.out, markdown(R.read(a.out)))

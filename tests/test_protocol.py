@@ -344,3 +344,16 @@ def test_the_benchmark_rows_put_the_protocol_beside_the_env(tmp_path, capsys):
     assert r["baseline_throughput"] == base["throughput"]
     assert r["ratio"] == pytest.approx(r["throughput"] / base["throughput"])
   assert "| cartpole-balance | jax | protocol K=2 |" in (tmp_path / "evaluate.md").read_text()
+
+
+def test_equal_batch_gives_each_of_k_agents_a_kth_of_the_looks(capsys):
+  import types
+  from dmcr_jax.benchmarks import evaluate as bench
+  args = types.SimpleNamespace(equal_batch=True, visual_seeds=100, dynamics_seeds=3,
+                               train_episodes=100)
+  assert bench.sizes_for(1, args) == (100, 100)
+  assert bench.sizes_for(4, args) == (25, 75)    # 4 × 25 looks × 3: the envs of one agent
+  assert bench.sizes_for(4, types.SimpleNamespace(**dict(vars(args), equal_batch=False))) == (100, 100)
+  with pytest.raises(SystemExit):                # refused before anything is built
+    bench.main(["--agents", "1,3", "--equal-batch"])
+  assert "--visual-seeds (100) must divide by every K in --agents (1,3)" in capsys.readouterr().err
