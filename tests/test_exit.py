@@ -24,7 +24,8 @@ pytestmark = pytest.mark.xdist_group("exit")
 # argv[2] says so, else left as made (the physics worker still compiling); then the
 # script ends as argv[1] says.
 CHILD = r"""
-import json, sys, time
+import faulthandler, json, signal, sys, time
+faulthandler.register(signal.SIGUSR1, all_threads=True)   # the test's stack dump on a hang
 import gymnasium
 import dmcr_jax
 from dmcr_jax.visuals import pool
@@ -102,12 +103,16 @@ def test_a_process_with_open_envs_exits_promptly_and_leaves_nothing(children, en
     assert all(os.path.exists(f"/dev/shm/{n}") for n in made["segments"])
     assert not any(_dead(p) for p in made["pids"])
     os.killpg(proc.pid, sig)   # as Ctrl-C or `timeout` signal the whole group
-  try:
-    proc.wait(timeout=EXIT_S)
+  try:   # stderr read while waiting: a child never blocks on a full pipe
+    _, err = proc.communicate(timeout=EXIT_S)
   except subprocess.TimeoutExpired:
-    pytest.fail(f"the process did not exit within {EXIT_S} s of its end")
+    os.kill(proc.pid, signal.SIGUSR1)   # its threads' stacks to stderr (faulthandler)
+    time.sleep(2)
+    os.killpg(proc.pid, signal.SIGKILL)
+    _, err = proc.communicate()
+    pytest.fail(f"the process did not exit within {EXIT_S} s of its end; its stderr, "
+                f"with the stacks of its threads at that time:\n{err[-8000:]}")
   took = time.monotonic() - t0
-  err = proc.stderr.read()
   assert proc.returncode == status, err[-3000:]
   deadline = time.monotonic() + 5   # orphaned workers are reaped by init
   while not all(_dead(p) for p in made["pids"]) and time.monotonic() < deadline:
