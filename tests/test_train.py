@@ -261,8 +261,11 @@ def test_host_and_device_drivers_train_identical_agents(tmp_path):
   # RNG stream, updates and data, so only float32 rounding may differ (XLA compiles
   # the scan and the separate jits differently; on some CPUs bit for bit, on others
   # in the last bits, which Adam's normalised steps carry into every parameter).
-  # Each leaf must agree within a thousandth of its largest entry; a different
-  # key, update count or transition moves leaves by their own size.
+  # Each entry must agree within a thousandth of its leaf's largest entry, but for
+  # a few: a gradient entry at rounding level may change sign, which Adam's
+  # normalised step turns into a whole step of difference (at most one entry or 1 %
+  # of a leaf, 0.1 % of all entries). A different key, update count or transition
+  # moves nearly every entry of every leaf.
   # The demo's run (test_demo, same group) twice as long: the device driver's two
   # chunks are the demo's one chunk, compiled once for both tests.
   agents = {}
@@ -271,12 +274,16 @@ def test_host_and_device_drivers_train_identical_agents(tmp_path):
     loop.train(cfg, progress=False)
     _, agents[physics], step = loop.load_run(cfg.out_dir)
     assert step == 48 and int(agents[physics].step[0]) > 0  # updates ran
+  far_entries, entries = 0, 0
   for a, b in zip(jax.tree.leaves(agents["cpu"]), jax.tree.leaves(agents["device"])):
-    if np.asarray(a).dtype.kind in "biu":
-      np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    a, b = np.asarray(a), np.asarray(b)
+    if a.dtype.kind in "biu":
+      np.testing.assert_array_equal(a, b)
     else:
-      scale = float(np.max(np.abs(np.asarray(b)), initial=0.0))
-      np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-3 * scale)
+      far = ~(np.abs(a - b) <= 1e-3 * float(np.max(np.abs(b), initial=0.0)))   # NaN: far
+      assert far.sum() <= max(1, far.size // 100), (far.sum(), far.size, a[far], b[far])
+      far_entries, entries = far_entries + int(far.sum()), entries + far.size
+  assert far_entries <= entries // 1000, (far_entries, entries)
 
 
 @pytest.mark.slow
