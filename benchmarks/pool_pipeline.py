@@ -112,7 +112,8 @@ def bench_groups(task: str, envs: int, groups: int, steps: int, image_size: int,
         e.close()
   ms = {f"{k}_ms": 1e3 * v / steps for k, v in parts.items()}
   return dict(task=task, envs=size * groups, groups=groups, group_envs=size, steps=steps,
-              workers=workers, physics_workers=physics_workers, image_size=image_size, step_ms=1e3 * wall / steps,
+              workers=workers, physics_workers=physics_workers, image_size=image_size,
+              step_ms=1e3 * wall / steps,
               frames_per_s=size * groups * steps / wall, **ms)
 
 

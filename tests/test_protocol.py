@@ -353,7 +353,8 @@ def test_equal_batch_gives_each_of_k_agents_a_kth_of_the_looks(capsys):
                                train_episodes=100)
   assert bench.sizes_for(1, args) == (100, 100)
   assert bench.sizes_for(4, args) == (25, 75)    # 4 × 25 looks × 3: the envs of one agent
-  assert bench.sizes_for(4, types.SimpleNamespace(**dict(vars(args), equal_batch=False))) == (100, 100)
+  apart = types.SimpleNamespace(**dict(vars(args), equal_batch=False))
+  assert bench.sizes_for(4, apart) == (100, 100)
   with pytest.raises(SystemExit):                # refused before anything is built
     bench.main(["--agents", "1,3", "--equal-batch"])
   assert "--visual-seeds (100) must divide by every K in --agents (1,3)" in capsys.readouterr().err
