@@ -203,7 +203,7 @@ def main(argv=None) -> None:
     p.error(f"--equal-batch: --visual-seeds ({a.visual_seeds}) must divide by every K in "
             f"--agents ({a.agents})")
   frame_skip = a.action_repeat or default_frame_skip(a.task)
-  rows, baselines = [], {}
+  rows, baselines, one_agent = [], {}, {}   # baselines by (renderer, envs); K=1 rows by renderer
   for renderer in renderers:
     for k in ks:
       own = bench_protocol(a.task, renderer, k, a)
@@ -230,8 +230,8 @@ def main(argv=None) -> None:
         R.emit(b, a.out)
         rows.append(b)
       base = baselines.get((renderer, n))
-      if a.equal_batch and k > 1 and (renderer, "K=1") in baselines:
-        base = baselines[(renderer, "K=1")]
+      if a.equal_batch and k > 1 and renderer in one_agent:
+        base = one_agent[renderer]
       unit = "agent-steps/s" if renderer == "jax" else "frames/s"
       r = R.row(own, f"protocol K={k}", n=n, throughput=own["agent_steps_per_s"], unit=unit,
                 compile_s=own["compile_s"], run_s=own["run_s"],
@@ -244,7 +244,7 @@ def main(argv=None) -> None:
       R.emit(r, a.out)
       rows.append(r)
       if k == 1:
-        baselines[(renderer, "K=1")] = r
+        one_agent[renderer] = r
   print(markdown(rows))
   if a.out:
     R.write_markdown(a.out, markdown(R.read(a.out)))
