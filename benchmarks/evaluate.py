@@ -16,9 +16,11 @@ sizes, evaluated with `dmcr-evaluate`'s greedy policy):
   they are drawn), compile and run apart, and the ratio;
 - pool: the render pool's exact frames/s at the protocol's batch size
   (`RenderPool.render` of fixed states, `dmcr_jax.benchmarks.render.bench_pool`,
-  the block's envs in one call) and the ratio of the protocol's frames/s (one
-  frame per agent step) to it; the protocol draws the block with as many workers,
-  as `pool_groups` pipelined groups ("groups" in its row).
+  the block's envs in one call, with the protocol's render workers) and the ratio
+  of the protocol's frames/s (one frame per agent step) to it; the protocol draws
+  the block as `pool_groups` pipelined groups, the physics on the host CPU
+  ("groups", "workers" and "physics_workers" in its row:
+  `protocol_pool.workers_for`).
 
     python -m dmcr_jax.benchmarks.evaluate --task walker-walk --agents 1,4 \\
         --out benchmarks/results/evaluate_h200.jsonl
@@ -117,7 +119,7 @@ def sizes_for(k: int, args) -> tuple[int, int]:
 def bench_protocol(task: str, renderer: str, k: int, args) -> dict:
   """Two passes of the protocol for K agents (the second with other params)."""
   import jax
-  from dmcr_jax import protocol
+  from dmcr_jax import protocol, protocol_pool
   from dmcr_jax.train import evaluate
   render = dict(quality="exact", workers=args.workers) if renderer == "pool" else {}
   conditions = tuple(args.conditions.split(",")) if args.conditions else None
@@ -137,11 +139,13 @@ def bench_protocol(task: str, renderer: str, k: int, args) -> dict:
   second = proto(second_params)
   run_s = time.perf_counter() - t0
   steps = second.agent_steps
+  workers = protocol_pool.workers_for(proto) if renderer == "pool" else (None, None)
   return dict(task=task, renderer=renderer, agents=k, conditions=list(proto.conditions),
               visual_seeds=visual_seeds, dynamics_seeds=args.dynamics_seeds,
               train_episodes=train_episodes, image_size=args.image_size,
               episodes_per_agent=proto.plan.episodes, block_envs=proto.block_envs,
               groups=len(protocol.pool_groups(k, proto.block)) if renderer == "pool" else None,
+              workers=workers[0], physics_workers=workers[1],
               blocks=proto.num_blocks, episode_length=proto.episode_length,
               action_repeat=proto.env_kwargs["frame_skip"], first_pass_s=first_s,
               compile_s=max(first_s - run_s, 0.0), run_s=run_s, agent_steps=steps, **seconds,
@@ -219,9 +223,7 @@ def main(argv=None) -> None:
                     compile_s=env["compile_s"], run_s=env["run_s"], is_baseline=True)
         else:
           from dmcr_jax.benchmarks.render import bench_pool
-          from dmcr_jax.visuals.render_pool import default_workers
-          pool = bench_pool(a.task, n, a.workers or default_workers(), "exact", a.image_size,
-                            repeats=3)
+          pool = bench_pool(a.task, n, own["workers"], "exact", a.image_size, repeats=3)
           b = R.row(dict(own, agents=None, gl=pool["gl"], workers=pool["workers"]),
                     "pool exact frames", n=n, throughput=pool["frames_per_s"],
                     unit="frames/s", compile_s=pool["start_s"], run_s=pool["run_s"],

@@ -4,8 +4,10 @@ For each number of groups G (`--groups 1,2,4`), a pool block of `--envs` envs of
 held-out looks steps as G pool envs sharing one `RenderPool`, round robin as the
 protocol does (`protocol_pool.run_pipelined`; G = 1 is the plain loop), with the
 protocol's jitted policy call (`protocol_pool._pool_act`) on a random-init SAC agent
-of the paper's sizes. Each host call is timed, so a row splits the wall time of one
-agent step of the whole block (ms) into:
+of the paper's sizes, the physics on the host CPU and the protocol's render and
+physics workers (`protocol_pool.pass_workers`; `--workers`, `--physics-workers` set
+them). Each host call is timed, so a row splits the wall time of one agent step of
+the whole block (ms) into:
 
 - wait frames: `step_wait`, waiting for a group's frames and stacking them;
 - submit: `step_submit`, waiting for the group's physics, fetching what the frames
@@ -17,7 +19,7 @@ Beside them: the pool's exact frames/s for the block in one render call of fixed
 states (`benchmarks.render.bench_pool`) and the ratio of each row's frames/s to it.
 
     python -m dmcr_jax.benchmarks.pool_pipeline --task walker-walk --envs 240 --groups 1,2,4
-    python -m dmcr_jax.benchmarks.pool_pipeline --groups 2 --physics-workers 4   # physics on CPU
+    python -m dmcr_jax.benchmarks.pool_pipeline --groups 2 --workers 16 --physics-workers 0
 """
 
 from __future__ import annotations
@@ -55,12 +57,25 @@ class _Timed:
     return self._timed("dispatch", self.env.step_async, actions)
 
 
+def host_workers(envs: int, workers: int | None, physics_workers: int | None
+                 ) -> tuple[int, int]:
+  """(render workers, physics workers per pool env) for `envs` pool envs on this
+  host as the protocol chooses them (`protocol_pool.pass_workers`), the given
+  ones kept."""
+  import os
+  import jax
+  from dmcr_jax.protocol_pool import pass_workers
+  from dmcr_jax.visuals.render_pool import default_gl
+  software = jax.default_backend() == "cpu" or default_gl() == "osmesa"
+  return pass_workers(envs, os.cpu_count() or 1, software, workers, physics_workers)
+
+
 def bench_groups(task: str, envs: int, groups: int, steps: int, image_size: int,
                  workers: int | None, physics_workers: int | None = None) -> dict:
   """One row's fields: `envs` envs as `groups` pipelined pool envs, `steps` agent
-  steps (after 3 untimed ones), ms per agent step of the block by part; each pool
-  env's physics in `physics_workers` CPU processes (None: `make`'s default, as the
-  protocol's pool envs)."""
+  steps (after 3 untimed ones), ms per agent step of the block by part; `workers`
+  render workers and each pool env's physics in `physics_workers` CPU processes
+  (None: the protocol's, `protocol_pool.pass_workers`)."""
   import jax
   import numpy as np
   from dmcr_jax import make
@@ -68,9 +83,10 @@ def bench_groups(task: str, envs: int, groups: int, steps: int, image_size: int,
   from dmcr_jax.protocol_pool import _pool_act, run_pipelined
   from dmcr_jax.train.evaluate import greedy_policy
   from dmcr_jax.visuals.levels import TEST_SEEDS
-  from dmcr_jax.visuals.render_pool import RenderPool, default_workers
+  from dmcr_jax.visuals.render_pool import RenderPool
   size = -(-envs // groups)
-  workers = min(size, workers or default_workers())
+  workers, physics_workers = host_workers(groups, workers, physics_workers)
+  workers = min(size, workers)
   params = sac_agents(task, 1, image_size, 3)
   params = jax.tree.map(lambda x: x[0], params)
   key = jax.random.key(0)
@@ -82,8 +98,7 @@ def bench_groups(task: str, envs: int, groups: int, steps: int, image_size: int,
                        image_size=image_size, copy_obs=False,
                        visual_seeds=seeds[h * size:(h + 1) * size],
                        render_pool=pool.rows(h * size, (h + 1) * size),
-                       physics_workers=physics_workers,
-                       physics_device=None if physics_workers is None else "cpu")
+                       physics_workers=physics_workers, physics_device="cpu")
                   for h in range(groups)]
     try:
       low = np.asarray(group_envs[0].single_action_space.low, np.float32)
@@ -139,23 +154,26 @@ def main(argv=None) -> None:
   p.add_argument("--groups", default="1,2,4", help="comma-separated numbers of groups")
   p.add_argument("--steps", type=int, default=30, help="timed agent steps")
   p.add_argument("--image-size", type=int, default=84)
-  p.add_argument("--workers", type=int, default=None, help="render workers")
+  p.add_argument("--workers", type=int, default=None,
+                 help="render workers (default: the protocol's)")
   p.add_argument("--physics-workers", type=int, default=None,
-                 help="CPU physics processes per pool env (default: make's, as the protocol)")
+                 help="CPU physics processes per pool env, 0: this process "
+                      "(default: the protocol's)")
   p.add_argument("--out", default=None, help="JSONL file the rows are appended to")
   a = p.parse_args(argv)
   from dmcr_jax.checks import positive_int
   groups = [positive_int("--groups", int(g)) for g in a.groups.split(",")]
-  if a.physics_workers is not None:
-    positive_int("--physics-workers", a.physics_workers)
+  if a.workers is not None:
+    positive_int("--workers", a.workers)
+  if a.physics_workers is not None and a.physics_workers < 0:
+    p.error(f"--physics-workers must be 0 or more, got {a.physics_workers}")
   for name in ("envs", "steps", "image_size"):
     positive_int(f"--{name.replace('_', '-')}", getattr(a, name))
   import jax
   from dmcr_jax.benchmarks.render import bench_pool
-  from dmcr_jax.visuals.render_pool import default_workers
   device = jax.devices()[0]
   own = dict(device=device.device_kind, platform=device.platform)
-  workers = min(a.envs, a.workers or default_workers())
+  workers = min(a.envs, host_workers(1, a.workers, None)[0])
   frames = bench_pool(a.task, a.envs, workers, "exact", a.image_size, repeats=3)
   base = R.row(dict(own, task=a.task, step_ms=1e3 * frames["run_s"], workers=workers),
                "the pool's exact frames, one call", n=a.envs,
@@ -166,7 +184,9 @@ def main(argv=None) -> None:
   for g in groups:
     fields = bench_groups(a.task, a.envs, g, a.steps, a.image_size, a.workers,
                           a.physics_workers)
-    where = "" if a.physics_workers is None else f", physics in {a.physics_workers} workers"
+    w = fields["physics_workers"]
+    where = (f", {fields['workers']} render workers, physics "
+             f"{f'in {w} workers' if w else 'in this process'}")
     r = R.row(dict(own, **fields), f"pipelined, {g} group{'s' * (g > 1)}{where}",
               n=fields["envs"], throughput=fields["frames_per_s"], unit="frames/s",
               baseline=base["variant"], baseline_throughput=base["throughput"])

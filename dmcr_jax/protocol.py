@@ -38,7 +38,8 @@ pool (`dmcr_jax.make`), every condition's envs in one block (`PixelVectorEnv.set
 the same jitted policy called from the host loop; a block steps as two pipelined
 groups of envs (`pool_groups`), or one group per motion when it holds moving
 conditions (`protocol_pool.block_groups`), a group's physics and policy running
-while the workers draw another's frames. Returns are those of `dmcr_jax.make`'s env stepped by
+while the workers draw another's frames, the physics on the host CPU
+(`protocol_pool.pass_workers`). Returns are those of `dmcr_jax.make`'s env stepped by
 the same policy (`tests/test_protocol.py`). The policy is vmapped over envs (and
 the K agents run one after another, each on its own envs): an env's action
 depends on its own observation and key alone, so the returns do not depend on
@@ -104,7 +105,7 @@ __all__ = ["FACTOR_CONDITIONS", "MOVING_PREFIX", "POLICY_STREAM", "POOL_GROUPS",
            "pool_groups", "prepare", "render_chunk", "render_padding", "reset_seeds",
            "run_pipelined", "save_progress", "train_look_seeds", "worst_action"]
 
-_POOL_OPTIONS = ("quality", "workers", "egl_devices", "gl")
+_POOL_OPTIONS = ("quality", "workers", "physics_workers", "egl_devices", "gl")
 _JAX_OPTIONS = ("shadows", "reflection", "render_chunk", "render_kernel")
 
 
@@ -342,7 +343,9 @@ def prepare(task: str, policy: Policy, *, agents: int | None = None, renderer: s
     action_repeat: control steps per agent step (default: the paper's for the task).
     max_envs: at most this many envs per block (default: every episode in one block).
     **render_options: "jax": shadows, reflection, render_chunk, render_kernel;
-      "pool": quality, workers, egl_devices, gl (`dmcr_jax.make`).
+      "pool": quality, workers, egl_devices, gl (`dmcr_jax.make`), physics_workers
+      (CPU processes stepping each pool env's physics; 0: this process; default
+      `protocol_pool.pass_workers`).
 
   Returns:
     The `Protocol`; call it with params.
@@ -351,7 +354,7 @@ def prepare(task: str, policy: Policy, *, agents: int | None = None, renderer: s
     ValueError: any bad option (the message names the valid ones).
   """
   from dmcr_jax import models
-  from dmcr_jax.env_checks import check_renderer_name, default_frame_skip
+  from dmcr_jax.env_checks import check_physics_workers, check_renderer_name, default_frame_skip
   check_renderer_name(renderer)
   if task not in models.ALL_TASKS:
     raise ValueError(f"Unknown task {task!r}; valid: {', '.join(models.ALL_TASKS)}")
@@ -389,6 +392,8 @@ def prepare(task: str, policy: Policy, *, agents: int | None = None, renderer: s
   positive_int("image width", w)
   if renderer == "pool" and render_options.get("workers") is not None:
     positive_int("workers", render_options["workers"])
+  if renderer == "pool" and render_options.get("physics_workers") is not None:
+    check_physics_workers(render_options["physics_workers"], "cpu")
   test = held_out_seeds(visual_seeds, seed)
   for look in set(looks):
     check_disjoint(test, look)
@@ -404,7 +409,7 @@ def prepare(task: str, policy: Policy, *, agents: int | None = None, renderer: s
                 train_vary=train_vary if isinstance(train_vary, str) else ",".join(train_vary),
                 train_look=[look_label(x) for x in looks],
                 **{name: v for name, v in render_options.items()
-                   if name not in ("workers", "egl_devices")})  # same pixels either way
+                   if name not in ("workers", "physics_workers", "egl_devices")})  # same returns
   if renderer == "pool":
     config.setdefault("quality", "exact")
   return Protocol(task=task, policy=policy, agents=agents, conditions=tuple(conditions),

@@ -8,6 +8,14 @@ steps them round robin, so that one group's physics and policy (`_pool_act`, the
 jitted policy call) run while the workers draw another's frames. `pool_runner` is the
 pass's block runner (`Protocol._pool_runner`). Returns are those of `dmcr_jax.make`'s
 env stepped by the same policy.
+
+Where the work runs (`pass_workers`): the physics of every group on the host CPU
+(`physics_device="cpu"`), never on an accelerator that EGL draws on, where CUDA
+kernels and the GL workers' draws take turns and neither overlaps the other; and,
+where an accelerator draws the frames, only `POOL_RENDER_WORKERS` render workers
+(more draw no more frames there), the cores they leave stepping the groups'
+physics in worker processes and launching the policy
+(`benchmarks/results/pool_pipeline_h200.md` measures each choice).
 """
 
 from __future__ import annotations
@@ -27,6 +35,45 @@ def _pool_act(params, obs, index, t, key, low, high, *, policy, agents):
   """The pool's policy call: (env actions float32 (N, A), `worst_action` (K,))."""
   actions = policy_actions(policy, params, obs, index, t, key, agents)
   return env_actions(actions, low, high), worst_action(actions, agents or 1)
+
+
+POOL_RENDER_WORKERS = 4
+"""Render workers of the pool pass where an accelerator draws the frames (EGL on a
+GPU): as many frames/s as one worker per core, with the other cores left free."""
+POOL_PHYSICS_WORKERS = 4
+"""The most physics worker processes (`dmcr_jax.physics_pool`) of one pool env of the
+pass."""
+
+
+def pass_workers(envs: int, cores: int, software_gl: bool,
+                 workers: int | None = None, physics_workers: int | None = None
+                 ) -> tuple[int, int]:
+  """(render workers, physics workers per pool env) of a pool pass.
+
+  Where the frames are drawn in software (no accelerator, or OSMesa) every core
+  renders (`render_pool.default_workers`) and the physics steps in this process.
+  Where an accelerator draws them, `POOL_RENDER_WORKERS` render and the cores left
+  (one kept for this process) step the physics: an equal share per pool env, at
+  most `POOL_PHYSICS_WORKERS`, none (this process's CPU) below two.
+
+  Args:
+    envs: the pass's pool envs (each with its own physics workers).
+    cores: the host's CPU cores.
+    software_gl: whether the frames are drawn on the CPU.
+    workers, physics_workers: the caller's choice (None: as above); kept.
+
+  Returns:
+    (render workers ≥ 1, physics workers per env ≥ 0).
+  """
+  from dmcr_jax.visuals.render_pool import default_workers
+  if software_gl:
+    render = workers or default_workers()
+    return render, 0 if physics_workers is None else physics_workers
+  render = workers or min(POOL_RENDER_WORKERS, cores)
+  if physics_workers is None:
+    share = min(POOL_PHYSICS_WORKERS, (cores - render - 1) // max(envs, 1))
+    physics_workers = share if share >= 2 else 0
+  return render, physics_workers
 
 
 POOL_GROUPS = 2
@@ -142,6 +189,29 @@ def _env_keys(layout) -> list[tuple[int, int, int]]:
   return keys
 
 
+def _pass_env_keys(proto) -> list[tuple[int, int, int]]:
+  """The pass's pool envs over all its blocks: (motion, size, n-th of those)."""
+  k = proto.agents or 1
+  return list(dict.fromkeys(
+      e for idx in proto.block_slices()
+      for e in _env_keys(block_groups(k, proto.plan.motion_index[idx][:proto.block]))))
+
+
+def workers_for(proto) -> tuple[int, int]:
+  """(render workers, physics workers per pool env) of `proto`'s pool pass:
+  `pass_workers` for its pool envs on this host, with the render options'
+  `workers` and `physics_workers` where given; no more render workers than the
+  largest group has envs."""
+  import os
+  from dmcr_jax.visuals.render_pool import default_gl
+  opts = proto.env_kwargs["render"]
+  keys = _pass_env_keys(proto)
+  software = jax.default_backend() == "cpu" or (opts.get("gl") or default_gl()) == "osmesa"
+  render, physics = pass_workers(len(keys), os.cpu_count() or 1, software,
+                                 opts.get("workers"), opts.get("physics_workers"))
+  return min(render, max(size for _, size, _ in keys)), physics
+
+
 @contextlib.contextmanager
 def pool_runner(proto, params, key):
   """A context giving `run_block(inputs) -> returns (K·B,)` with the render pool:
@@ -157,16 +227,16 @@ def pool_runner(proto, params, key):
   from dmcr_jax import models
   from dmcr_jax.env import make
   from dmcr_jax.env_checks import check_camera
-  from dmcr_jax.visuals.render_pool import RenderPool, default_workers
+  from dmcr_jax.visuals.render_pool import RenderPool
   kw, k, plan = proto.env_kwargs, proto.agents or 1, proto.plan
   layout = lambda motion_index: block_groups(k, motion_index[:proto.block])
-  keys = list(dict.fromkeys(e for idx in proto.block_slices()
-                            for e in _env_keys(layout(plan.motion_index[idx]))))
+  keys = _pass_env_keys(proto)
   starts = np.cumsum([0] + [size for _, size, _ in keys])
   opts = dict(kw["render"])
   check_camera(models.load(proto.task).mj_model, opts.get("camera", 0), proto.task)
-  workers = min(max(size for _, size, _ in keys),
-                opts.pop("workers", None) or default_workers())
+  workers, physics_workers = workers_for(proto)
+  opts.pop("workers", None)
+  opts.pop("physics_workers", None)
   (h, w), frame_stack = kw["image_size"], kw["frame_stack"]
   with contextlib.ExitStack() as stack:
     pool = stack.enter_context(RenderPool(proto.task, max_batch=int(starts[-1]),
@@ -179,7 +249,8 @@ def pool_runner(proto, params, key):
           proto.task, renderer="pool", num_envs=size, frame_skip=kw["frame_skip"],
           frame_stack=frame_stack, image_size=(h, w), camera=opts.get("camera", 0),
           seed=proto.config["seed"], copy_obs=False, moving=moving or None,
-          intensity=intensity, render_pool=pool.rows(int(starts[j]), int(starts[j + 1]))))
+          intensity=intensity, physics_device="cpu", physics_workers=physics_workers,
+          render_pool=pool.rows(int(starts[j]), int(starts[j + 1]))))
     first = next(iter(envs.values()))
     low = np.asarray(first.single_action_space.low, np.float32)
     high = np.asarray(first.single_action_space.high, np.float32)

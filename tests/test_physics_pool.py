@@ -191,6 +191,13 @@ def test_env_with_physics_workers_matches_in_process_env():
       for _ in range(5):
         obs, reward, _, truncated, info = env.step(rng.uniform(-1, 1, (N, 1)))
         steps.append((obs, reward))
+      # As the protocol's pool pass drives it: looks of their own, a reset seed per env.
+      env.set_looks([5, 6, 7], ["all", "none", "floor"])
+      obs, _ = env.reset(seed=[9, 4, 9])
+      steps.append((obs, None))
+      for _ in range(3):
+        obs, reward, _, truncated, info = env.step(rng.uniform(-1, 1, (N, 1)))
+        steps.append((obs, reward))
       runs.append((steps, env.state))
   for (obs_a, r_a), (obs_b, r_b) in zip(*(r[0] for r in runs)):
     np.testing.assert_array_equal(obs_a, obs_b)

@@ -25,7 +25,7 @@ import pytest
 
 import dmcr_jax
 from dmcr_jax import protocol as P
-from dmcr_jax import protocol_report
+from dmcr_jax import protocol_pool, protocol_report
 from tests.host_episodes import host_episode_returns
 
 # One worker runs the module, so that its module fixtures (each a compiled pass) are
@@ -144,6 +144,8 @@ def test_bad_policies_are_refused_before_anything_compiles(policy, params, agent
     (dict(visual_seeds=0), "visual_seeds must be a positive int"),
     (dict(quality="fast"), "apply only to renderer='pool'"),
     (dict(renderer="pool", shadows=False), "apply only to renderer='jax'"),
+    (dict(physics_workers=2), "apply only to renderer='pool'"),
+    (dict(renderer="pool", physics_workers=-1), "physics_workers must be None, 0 or"),
     (dict(colour=1), "unknown option colour"),
     (dict(train_look=[0, 1]), "one per agent"),
     (dict(train_look=dmcr_jax.TEST_SEEDS), "lie in the training looks"),
@@ -254,6 +256,23 @@ def test_the_pool_runs_every_condition_in_one_batch_with_the_same_returns():
   for c in OPTS["conditions"]:
     np.testing.assert_allclose(got.returns[c][0], want[c], rtol=1e-6)
   assert "render quality fastest" in got.markdown()
+
+
+def test_the_pool_pass_leaves_software_gl_every_core_and_else_steps_the_physics_on_them():
+  from dmcr_jax.protocol_pool import POOL_RENDER_WORKERS, pass_workers
+  from dmcr_jax.visuals.render_pool import default_workers
+  assert pass_workers(2, 16, software_gl=True) == (default_workers(), 0)
+  # An accelerator draws: a few render workers, the other cores (one kept) step the
+  # physics, an equal share per pool env, at most 4, none below 2.
+  assert pass_workers(2, 16, software_gl=False) == (POOL_RENDER_WORKERS, 4)
+  assert pass_workers(2, 12, software_gl=False) == (POOL_RENDER_WORKERS, 3)
+  assert pass_workers(8, 16, software_gl=False) == (POOL_RENDER_WORKERS, 0)
+  assert pass_workers(1, 2, software_gl=False) == (2, 0)
+  assert pass_workers(2, 16, False, workers=8, physics_workers=1) == (8, 1)   # kept
+  # A pass's own options reach its pool envs (the pass makes them with these).
+  proto = P.prepare(TASK, pixel_policy, renderer="pool", workers=1, physics_workers=3, **OPTS)
+  assert protocol_pool.workers_for(proto) == (1, 3)
+  assert "physics_workers" not in proto.config     # the returns do not depend on it
 
 
 def test_pool_groups_split_each_agent_s_episodes_into_pipelined_halves():

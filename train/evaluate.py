@@ -79,7 +79,8 @@ class EvalConfig:
     seed: seeds the held-out looks' draw and the initial states.
     conditions: the conditions to run; None = every one that applies.
     quality: render preset (the default, "exact", is dm_control's look).
-    workers: render workers (None: one per core).
+    workers: render workers (None: the pool pass's, `protocol_pool.pass_workers`:
+      a few where a GPU draws, one per core where the frames are drawn in software).
     egl_devices: EGL device indices the render workers are spread over (None:
       MuJoCo's default; `dmcr_jax.visuals.render_pool`).
     renderer: "pool" (MuJoCo's pixels from the CPU render pool, the reference) or
@@ -296,7 +297,8 @@ def main(argv=None) -> None:
   p.add_argument("--quality", default=d.quality, metavar="{" + ",".join(QUALITY) + "}",
                  help="render preset (--renderer pool)")
   p.add_argument("--workers", type=int, default=None,
-                 help="render workers (default: one per core, at most 16)")
+                 help="render workers (default: the pool pass's, 4 where a GPU draws, "
+                      "one per core, at most 16, where software draws)")
   p.add_argument("--egl-devices", type=loop.egl_devices_arg, default=None, metavar="D[,D…]",
                  help="EGL device indices the render workers are spread over (default: "
                       "MuJoCo's, MUJOCO_EGL_DEVICE_ID or the first); e.g. 0,1 draws the "
