@@ -37,6 +37,12 @@ too short for a steady rate: fewer than two episode ends past the warm-up).
     python -m dmcr_jax.benchmarks.training --out benchmarks/results/train_h100.jsonl
     python -m dmcr_jax.benchmarks.training --steps 2000 --num-envs 4 --quality fastest --out /tmp/t.jsonl
     python -m dmcr_jax.benchmarks.training --devices 1,2 --seeds 0,1 --out /tmp/scaling.jsonl
+    python -m dmcr_jax.benchmarks.training --beside-one --renderer jax --seeds 0,1,2 --aug drq,cj+drq
+
+``--beside-one`` runs, before a run of K > 1 agents, the same training with its first
+agent alone (the first look group, augmentation and seed) and gives the K-agent row
+`beside_one`: its total steady transitions/s (all agents) over the one-agent run's,
+in the same process (1.0: K agents cost K one-agent runs; K: they cost one).
 
 One JSON line per run appended to `--out`, a Markdown table beside it.
 """
@@ -168,6 +174,19 @@ def eval_share(summary: dict) -> float | None:
   return summary["eval_seconds"] / summary["wall_s"]
 
 
+def first_agent_args(cfg) -> list[str]:
+  """`train` arguments that, appended to a run's own, train its first agent alone:
+  the first seed, augmentation and look group of each that has several."""
+  out = []
+  if len(cfg.seeds) > 1:
+    out += ["--seeds", str(cfg.seeds[0])]
+  if len(cfg.sac.aug_names) > 1:
+    out += ["--aug", cfg.sac.aug_names[0]]
+  if len(cfg.looks) > 1:
+    out += ["--visual-seeds", str(cfg.visual_seeds).split(",")[0]]
+  return out
+
+
 def check_device_counts(text: str, cfg) -> list[int]:
   """`--devices`' counts for the run `cfg`, sorted (`dmcr_jax.benchmarks.learner.device_counts`
   with its K agents; only 1 with the device driver).
@@ -239,6 +258,7 @@ def markdown(rows: list[dict]) -> str:
       ("steady transitions/s", lambda r: R.fmt(r.get("steady_transitions_per_s"), ",.1f")),
       ("total steady transitions/s", lambda r: R.fmt(r.get("total_transitions_per_s"), ",.1f")),
       ("scaling", lambda r: R.fmt(r.get("scaling_efficiency"), ".2f")),
+      ("× one agent", lambda r: R.fmt(r.get("beside_one"), ".2f")),
       ("learner alone updates/s", lambda r: R.fmt(r.get("learner_updates_per_s"), ",.1f")),
       ("ratio", lambda r: R.fmt(r.get("ratio"), ".2f")),
       ("steady ms per vector step", _vector_step_text),
@@ -295,12 +315,24 @@ def main(argv=None) -> None:
                       "one run each (e.g. 1,2,4,8; each must divide the number of "
                       "agents; default: one run on the devices train picks, all of them "
                       "when they divide the agents)")
+  p.add_argument("--beside-one", action="store_true",
+                 help="first train the run's first agent alone, then the run; the run's "
+                      "row gets its total transitions/s over the one agent's")
   a, train_argv = p.parse_known_args(argv)
   if "--resume" in train_argv:
     p.error("--resume is not timed here: start a new run")
   if a.run_dir and os.path.exists(os.path.join(a.run_dir, "checkpoints")):
     p.error(f"--run-dir {a.run_dir} already holds a run; give a new folder")
   train_argv = list(DEFAULT_TRAIN_ARGS) + train_argv
+  if a.beside_one:
+    from dmcr_jax.train import __main__ as train_cli
+    cfg, _ = train_cli.parse(train_argv)  # creates nothing
+    if a.devices is not None:
+      p.error("--beside-one and --devices: give one of them")
+    if len(cfg.agents()) < 2:
+      p.error("--beside-one: the run trains one agent; give several (e.g. --seeds 0,1,2 "
+              "or --aug drq,cj+drq)")
+    return _beside_one(a, argv, train_argv, first_agent_args(cfg))
   counts = [None]
   if a.devices is not None:
     from dmcr_jax.train import __main__ as train_cli
@@ -324,12 +356,34 @@ def main(argv=None) -> None:
     if a.out:
       copy_outputs(run_dir, os.path.splitext(a.out)[0] + (f"_devices{n}" if several else ""))
     R.emit(row, a.out)
-  if a.out:
-    R.write_markdown(a.out, f"Rows of `python -m dmcr_jax.benchmarks.training` appended to "
-                     f"`{os.path.basename(a.out)}`; the last run: `python -m "
+  _report(a.out, argv, rows)
+
+
+def _report(out: str | None, argv, rows: list[dict]) -> None:
+  """Prints the rows' table and rewrites the Markdown beside `out` from all its rows."""
+  if out:
+    R.write_markdown(out, f"Rows of `python -m dmcr_jax.benchmarks.training` appended to "
+                     f"`{os.path.basename(out)}`; the last run: `python -m "
                      f"dmcr_jax.benchmarks.training {' '.join(argv)}` ({os.cpu_count()} cores).\n\n"
-                     + markdown(R.read(a.out)))
+                     + markdown(R.read(out)))
   print(markdown(rows))
+
+
+def _beside_one(a, argv, train_argv, one_args) -> None:
+  """`main` with --beside-one: the first agent alone, then the run, one row each."""
+  rows = []
+  for label, args in (("one", train_argv + one_args), ("all", train_argv)):
+    run_dir = (os.path.join(a.run_dir, f"agents-{label}") if a.run_dir
+               else tempfile.mkdtemp(prefix="dmcr_train_bench_"))
+    row = run(args, a.threshold, run_dir, not a.no_baseline)
+    if rows and rows[0]["total_transitions_per_s"] and row["total_transitions_per_s"]:
+      row["beside_one"] = row["total_transitions_per_s"] / rows[0]["total_transitions_per_s"]
+    row = suite_row(row)
+    rows.append(row)
+    if a.out:
+      copy_outputs(run_dir, os.path.splitext(a.out)[0] + f"_agents-{label}")
+    R.emit(row, a.out)
+  _report(a.out, argv, rows)
 
 
 def copy_outputs(run_dir: str, stem: str) -> None:

@@ -293,3 +293,36 @@ def test_training_rows_break_a_steady_vector_step_down():
       in markdown([dict(r, device="d", task="t", agents=1, steps=24000, dtype="bfloat16",
                         quality="exact", wall_s=1.0, process_s=2.0, transitions_per_s=3.0,
                         threshold=900.0, time_utc="2026-11-28T19:15:33")])
+
+
+def test_beside_one_trains_the_first_agent_alone_then_the_run(monkeypatch, tmp_path, capsys):
+  from dmcr_jax.benchmarks import training
+  from dmcr_jax.train import __main__ as train_cli
+  argv = ["--seeds", "3,4", "--aug", "drq,cj+drq", "--visual-seeds", "levels:10,100"]
+  cfg, _ = train_cli.parse(argv)
+  one = training.first_agent_args(cfg)
+  alone, _ = train_cli.parse(argv + one)
+  assert alone.agents() == cfg.agents()[:1] == [(3, "drq")]
+  assert alone.agent_looks() == cfg.agent_looks()[:1]
+  assert training.first_agent_args(alone) == []
+  runs = []
+
+  def fake_run(train_argv, threshold, run_dir, baseline=True, devices=None):
+    k = len(train_cli.parse(train_argv)[0].agents())
+    runs.append(k)
+    return dict(total_transitions_per_s=100.0 * (1 + k), agents=k, num_envs=4, task="t",
+                device="d", renderer="jax", dtype="bfloat16", transitions_per_s=1.0,
+                wall_s=1.0, process_s=2.0, steps=10, threshold=900.0,
+                time_utc="2026-12-02T15:00:00")
+  monkeypatch.setattr(training, "run", fake_run)
+  out = str(tmp_path / "t.jsonl")
+  training.main(argv + ["--beside-one", "--no-baseline", "--out", out])
+  rows = training.R.read(out)
+  assert runs == [1, 8]                            # the one agent first, then all 8
+  assert "beside_one" not in rows[0] and rows[1]["beside_one"] == pytest.approx(900 / 200)
+  for bad, why in ((["--seeds", "0"], "the run trains one agent"),
+                   (argv + ["--devices", "1"], "give one of them")):
+    with pytest.raises(SystemExit):
+      training.main(bad + ["--beside-one"])
+    assert why in capsys.readouterr().err
+  assert runs == [1, 8]                            # refused before anything trains
