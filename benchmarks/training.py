@@ -37,7 +37,7 @@ too short for a steady rate: fewer than two episode ends past the warm-up).
     python -m dmcr_jax.benchmarks.training --out benchmarks/results/train_h100.jsonl
     python -m dmcr_jax.benchmarks.training --steps 2000 --num-envs 4 --quality fastest --out /tmp/t.jsonl
     python -m dmcr_jax.benchmarks.training --devices 1,2 --seeds 0,1 --out /tmp/scaling.jsonl
-    python -m dmcr_jax.benchmarks.training --beside-one --renderer jax --seeds 0,1,2 --aug drq,cj+drq
+    python -m dmcr_jax.benchmarks.training --beside-one --renderer jax --seeds 0,1 --aug drq,cj+drq
 
 ``--beside-one`` runs, before a run of K > 1 agents, the same training with its first
 agent alone (the first look group, augmentation and seed) and gives the K-agent row
