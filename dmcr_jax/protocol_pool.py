@@ -54,7 +54,7 @@ def pass_workers(envs: int, cores: int, software_gl: bool,
   renders (`render_pool.default_workers`) and the physics steps in this process.
   Where an accelerator draws them, `POOL_RENDER_WORKERS` render and the cores left
   (one kept for this process) step the physics: an equal share per pool env, at
-  most `POOL_PHYSICS_WORKERS`, none (this process's CPU) below two.
+  most `POOL_PHYSICS_WORKERS`; in this process (on its CPU) where the share is none.
 
   Args:
     envs: the pass's pool envs (each with its own physics workers).
@@ -71,8 +71,7 @@ def pass_workers(envs: int, cores: int, software_gl: bool,
     return render, 0 if physics_workers is None else physics_workers
   render = workers or min(POOL_RENDER_WORKERS, cores)
   if physics_workers is None:
-    share = min(POOL_PHYSICS_WORKERS, (cores - render - 1) // max(envs, 1))
-    physics_workers = share if share >= 2 else 0
+    physics_workers = max(0, min(POOL_PHYSICS_WORKERS, (cores - render - 1) // max(envs, 1)))
   return render, physics_workers
 
 

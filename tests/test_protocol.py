@@ -263,10 +263,11 @@ def test_the_pool_pass_leaves_software_gl_every_core_and_else_steps_the_physics_
   from dmcr_jax.visuals.render_pool import default_workers
   assert pass_workers(2, 16, software_gl=True) == (default_workers(), 0)
   # An accelerator draws: a few render workers, the other cores (one kept) step the
-  # physics, an equal share per pool env, at most 4, none below 2.
+  # physics, an equal share per pool env, at most 4 (none: in this process).
   assert pass_workers(2, 16, software_gl=False) == (POOL_RENDER_WORKERS, 4)
   assert pass_workers(2, 12, software_gl=False) == (POOL_RENDER_WORKERS, 3)
-  assert pass_workers(8, 16, software_gl=False) == (POOL_RENDER_WORKERS, 0)
+  assert pass_workers(8, 16, software_gl=False) == (POOL_RENDER_WORKERS, 1)
+  assert pass_workers(19, 16, software_gl=False) == (POOL_RENDER_WORKERS, 0)
   assert pass_workers(1, 2, software_gl=False) == (2, 0)
   assert pass_workers(2, 16, False, workers=8, physics_workers=1) == (8, 1)   # kept
   # A pass's own options reach its pool envs (the pass makes them with these).
