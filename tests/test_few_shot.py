@@ -162,11 +162,8 @@ def test_training_logs_each_agents_range(levels_run):
 def test_evaluate_draws_the_curve_against_training_looks(levels_run, tmp_path):
   import matplotlib.image
   out, _ = levels_run
-  # Blocks of 16 envs, pool envs of 8 (2 agents × 4 episodes): test_evaluate's
-  # protocol and invariance envs, whose physics compilation this shares.
   cfg = ev.EvalConfig(visual_seeds=2, dynamics_seeds=2, train_episodes=3,
-                      conditions=("none", "floor", "all"), quality="fastest", workers=1,
-                      max_envs=16)
+                      conditions=("none", "floor", "all"), quality="fastest", workers=1)
   summary = ev.evaluate(out, cfg, out_dir=str(tmp_path), progress=False)
   agents = summary["agents"]
   assert [(r["train_look"], r["looks"]) for r in agents] == [("levels:1", 1), ("levels:2", 2)]
