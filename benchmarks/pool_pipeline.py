@@ -57,19 +57,6 @@ class _Timed:
     return self._timed("dispatch", self.env.step_async, actions)
 
 
-def host_workers(envs: int, workers: int | None, physics_workers: int | None
-                 ) -> tuple[int, int]:
-  """(render workers, physics workers per pool env) for `envs` pool envs on this
-  host as the protocol chooses them (`protocol_pool.pass_workers`), the given
-  ones kept."""
-  import os
-  import jax
-  from dmcr_jax.protocol_pool import pass_workers
-  from dmcr_jax.visuals.render_pool import default_gl
-  software = jax.default_backend() == "cpu" or default_gl() == "osmesa"
-  return pass_workers(envs, os.cpu_count() or 1, software, workers, physics_workers)
-
-
 def bench_groups(task: str, envs: int, groups: int, steps: int, image_size: int,
                  workers: int | None, physics_workers: int | None = None) -> dict:
   """One row's fields: `envs` envs as `groups` pipelined pool envs, `steps` agent
@@ -80,12 +67,13 @@ def bench_groups(task: str, envs: int, groups: int, steps: int, image_size: int,
   import numpy as np
   from dmcr_jax import make
   from dmcr_jax.benchmarks.evaluate import sac_agents
-  from dmcr_jax.protocol_pool import _pool_act, run_pipelined
+  from dmcr_jax.protocol_pool import _pool_act, host_workers, run_pipelined
   from dmcr_jax.train.evaluate import greedy_policy
   from dmcr_jax.visuals.levels import TEST_SEEDS
   from dmcr_jax.visuals.render_pool import RenderPool
   size = -(-envs // groups)
-  workers, physics_workers = host_workers(groups, workers, physics_workers)
+  workers, physics_workers = host_workers(groups, workers=workers,
+                                         physics_workers=physics_workers)
   workers = min(size, workers)
   params = sac_agents(task, 1, image_size, 3)
   params = jax.tree.map(lambda x: x[0], params)
@@ -171,9 +159,10 @@ def main(argv=None) -> None:
     positive_int(f"--{name.replace('_', '-')}", getattr(a, name))
   import jax
   from dmcr_jax.benchmarks.render import bench_pool
+  from dmcr_jax.protocol_pool import host_workers
   device = jax.devices()[0]
   own = dict(device=device.device_kind, platform=device.platform)
-  workers = min(a.envs, host_workers(1, a.workers, None)[0])
+  workers = min(a.envs, host_workers(1, workers=a.workers)[0])
   frames = bench_pool(a.task, a.envs, workers, "exact", a.image_size, repeats=3)
   base = R.row(dict(own, task=a.task, step_ms=1e3 * frames["run_s"], workers=workers),
                "the pool's exact frames, one call", n=a.envs,

@@ -196,18 +196,25 @@ def _pass_env_keys(proto) -> list[tuple[int, int, int]]:
       for e in _env_keys(block_groups(k, proto.plan.motion_index[idx][:proto.block]))))
 
 
-def workers_for(proto) -> tuple[int, int]:
-  """(render workers, physics workers per pool env) of `proto`'s pool pass:
-  `pass_workers` for its pool envs on this host, with the render options'
-  `workers` and `physics_workers` where given; no more render workers than the
-  largest group has envs."""
+def host_workers(envs: int, gl: str | None = None, workers: int | None = None,
+                 physics_workers: int | None = None) -> tuple[int, int]:
+  """`pass_workers` for `envs` pool envs on this host: its cores, and software GL
+  where JAX has no accelerator or `gl` (None: `render_pool.default_gl()`) is OSMesa."""
   import os
   from dmcr_jax.visuals.render_pool import default_gl
+  software = jax.default_backend() == "cpu" or (gl or default_gl()) == "osmesa"
+  return pass_workers(envs, os.cpu_count() or 1, software, workers, physics_workers)
+
+
+def workers_for(proto) -> tuple[int, int]:
+  """(render workers, physics workers per pool env) of `proto`'s pool pass:
+  `host_workers` for its pool envs, with the render options' `gl`, `workers` and
+  `physics_workers` where given; no more render workers than the largest group
+  has envs."""
   opts = proto.env_kwargs["render"]
   keys = _pass_env_keys(proto)
-  software = jax.default_backend() == "cpu" or (opts.get("gl") or default_gl()) == "osmesa"
-  render, physics = pass_workers(len(keys), os.cpu_count() or 1, software,
-                                 opts.get("workers"), opts.get("physics_workers"))
+  render, physics = host_workers(len(keys), opts.get("gl"), opts.get("workers"),
+                                 opts.get("physics_workers"))
   return min(render, max(size for _, size, _ in keys)), physics
 
 
