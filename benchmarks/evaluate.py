@@ -5,8 +5,9 @@ condition that applies, 100 held-out looks × 3 initial states, 100 train episod
 at seed 0's look, which "none" shares), it measures in one run, per renderer and
 per number of agents K (`--agents 1,4`; random-init SAC agents of the paper's
 sizes, evaluated with `dmcr-evaluate`'s greedy policy):
-- the protocol: its first pass (compilation and one run) and a second pass with
-  other params of the same shapes (the run alone: nothing compiles again), and
+- the protocol: its first pass (compilation, the pool's start and one run) and a
+  second pass with other params of the same shapes, in one ``with proto:`` block
+  (the run alone: nothing compiles or starts again), and
   agent-steps/s of the second pass (every env's steps, K agents' together); of
   the first pass also the seconds JAX spent tracing and lowering ("trace_s") and
   XLA spent compiling ("xla_compile_s"), as JAX's monitoring events report them;
@@ -131,13 +132,14 @@ def bench_protocol(task: str, renderer: str, k: int, args) -> dict:
                            action_repeat=args.action_repeat, max_envs=args.max_envs, **render)
   first_params = sac_agents(task, k, args.image_size, args.frame_stack, seed=0)
   second_params = sac_agents(task, k, args.image_size, args.frame_stack, seed=k)
-  t0 = time.perf_counter()
-  with compile_seconds() as seconds:
-    first = proto(first_params)
-  first_s = time.perf_counter() - t0
-  t0 = time.perf_counter()
-  second = proto(second_params)
-  run_s = time.perf_counter() - t0
+  with proto:
+    t0 = time.perf_counter()
+    with compile_seconds() as seconds:
+      first = proto(first_params)
+    first_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    second = proto(second_params)
+    run_s = time.perf_counter() - t0
   steps = second.agent_steps
   workers = protocol_pool.workers_for(proto) if renderer == "pool" else (None, None)
   return dict(task=task, renderer=renderer, agents=k, conditions=list(proto.conditions),

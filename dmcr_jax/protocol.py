@@ -87,8 +87,8 @@ from dmcr_jax.protocol_plan import (FACTOR_CONDITIONS, MOVING_PREFIX, PROGRESS_F
 from dmcr_jax.protocol_policy import (POLICY_STREAM, Policy, agent_count, check_actions,
                                       check_policy, env_actions, params_digest,
                                       policy_actions, worst_action)
-from dmcr_jax.protocol_pool import (POOL_GROUPS, _pool_act, pool_groups,  # noqa: F401
-                                    pool_runner, run_pipelined)
+from dmcr_jax.protocol_pool import (POOL_GROUPS, _pool_act, block_runner,  # noqa: F401
+                                    pool_envs, pool_groups, run_pipelined)
 from dmcr_jax.protocol_ray import (_pixel_env, _ray_block, _ray_block_jit,  # noqa: F401
                                    block_looks, episode_step, render_chunk, render_padding)
 from dmcr_jax.protocol_report import generalization_error
@@ -116,7 +116,13 @@ class Protocol:
 
   The jitted block program is built once per (policy, sizes); calling again with
   other params of the same shapes compiles nothing (a training loop can evaluate
-  its agents as it goes).
+  its agents as it goes). With the pool, each pass starts its render and physics
+  workers and stops them at its end; inside ``with proto:`` they start on the
+  first pass and serve every pass until the block ends (`close`), so that passes
+  after the first pay only for their episodes:
+
+      with protocol.prepare(task, policy, renderer="pool") as proto:
+        results = [proto(p) for p in checkpoints]
 
   Attributes:
     task: the task name.
@@ -144,6 +150,26 @@ class Protocol:
   episode_length: int
   config: dict
   env_kwargs: dict
+  _held: dict = dataclasses.field(default_factory=dict, init=False, repr=False,
+                                  compare=False)
+  """Inside ``with``: "stack", the `contextlib.ExitStack` of what the passes keep
+  open, and "pool", the pool pass's `protocol_pool.PoolEnvs` once opened."""
+
+  def __enter__(self) -> "Protocol":
+    if "stack" in self._held:
+      raise RuntimeError("this Protocol is already open (`with proto:` nested)")
+    self._held["stack"] = contextlib.ExitStack()
+    return self
+
+  def __exit__(self, *exc) -> None:
+    self.close()
+
+  def close(self) -> None:
+    """Stops the workers the passes inside ``with`` kept (nothing else to do)."""
+    stack = self._held.pop("stack", None)
+    self._held.pop("pool", None)
+    if stack is not None:
+      stack.close()
 
   @property
   def num_blocks(self) -> int:
@@ -294,9 +320,24 @@ class Protocol:
   @contextlib.contextmanager
   def _pool_runner(self, params, key):
     """A context giving `run_block(inputs) -> returns (K·B,)` with the render pool
-    (`protocol_pool.pool_runner`)."""
-    with pool_runner(self, params, key) as run_block:
-      yield run_block
+    (`protocol_pool.block_runner`): on the pool envs kept inside ``with`` (opened
+    on the first pass; closed and dropped where a pass fails, so that the next
+    opens new ones), else on envs opened for this pass alone."""
+    if "stack" not in self._held:
+      with pool_envs(self) as penvs:
+        yield block_runner(self, penvs, params, key)
+      return
+    if "pool" not in self._held:
+      own = contextlib.ExitStack()
+      self._held["pool"] = (own, own.enter_context(pool_envs(self)))
+      self._held["stack"].push(own)
+    own, penvs = self._held["pool"]
+    try:
+      yield block_runner(self, penvs, params, key)
+    except BaseException:
+      self._held.pop("pool", None)
+      own.close()
+      raise
 
 
 def _check_train_look(look, k: int) -> tuple:

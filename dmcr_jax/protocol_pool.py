@@ -5,9 +5,10 @@ pipelined halves of `pool_groups`, or one group per motion where the block holds
 moving conditions), each a `dmcr_jax.make` pool env (made with the group's
 `moving` and `intensity`) drawn by one shared `RenderPool`'s workers; `run_pipelined`
 steps them round robin, so that one group's physics and policy (`_pool_act`, the
-jitted policy call) run while the workers draw another's frames. `pool_runner` is the
-pass's block runner (`Protocol._pool_runner`). Returns are those of `dmcr_jax.make`'s
-env stepped by the same policy.
+jitted policy call) run while the workers draw another's frames. `pool_envs` opens a
+pass's envs and workers (once per pass, or once for every pass inside a `with` block
+of the `Protocol`), `block_runner` runs its blocks on them (`Protocol._pool_runner`).
+Returns are those of `dmcr_jax.make`'s env stepped by the same policy.
 
 Where the work runs (`pass_workers`): the physics of every group on the host CPU
 (`physics_device="cpu"`), never on an accelerator that EGL draws on, where CUDA
@@ -22,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -218,24 +220,28 @@ def workers_for(proto) -> tuple[int, int]:
   return min(render, max(size for _, size, _ in keys)), physics
 
 
+class PoolEnvs(NamedTuple):
+  """A pool pass's open envs (`pool_envs`): per `_pass_env_keys` entry its pool env,
+  and the task's action bounds (float32 (A,))."""
+  envs: dict
+  low: np.ndarray
+  high: np.ndarray
+
+
 @contextlib.contextmanager
-def pool_runner(proto, params, key):
-  """A context giving `run_block(inputs) -> returns (K·B,)` with the render pool:
-  the block's envs as `block_groups` groups, one pool env each (made once per
-  motion and size over the pass's blocks), all drawn by one `RenderPool`'s workers
-  (which stop when the context ends).
+def pool_envs(proto):
+  """A context giving the `PoolEnvs` of `proto`'s pool pass: one pool env per motion
+  and size over the pass's blocks (`_pass_env_keys`), all drawn by one `RenderPool`'s
+  workers, which stop, with the envs' physics workers, when the context ends.
 
   Args:
     proto: the `protocol.Protocol` (its task, plan, sizes and render options).
-    params: the policy's params (leading axis K when `proto.agents` is K).
-    key: the pass's policy key.
   """
   from dmcr_jax import models
   from dmcr_jax.env import make
   from dmcr_jax.env_checks import check_camera
   from dmcr_jax.visuals.render_pool import RenderPool
-  kw, k, plan = proto.env_kwargs, proto.agents or 1, proto.plan
-  layout = lambda motion_index: block_groups(k, motion_index[:proto.block])
+  kw, plan = proto.env_kwargs, proto.plan
   keys = _pass_env_keys(proto)
   starts = np.cumsum([0] + [size for _, size, _ in keys])
   opts = dict(kw["render"])
@@ -258,33 +264,48 @@ def pool_runner(proto, params, key):
           intensity=intensity, physics_device="cpu", physics_workers=physics_workers,
           render_pool=pool.rows(int(starts[j]), int(starts[j + 1]))))
     first = next(iter(envs.values()))
-    low = np.asarray(first.single_action_space.low, np.float32)
-    high = np.asarray(first.single_action_space.high, np.float32)
+    yield PoolEnvs(envs, np.asarray(first.single_action_space.low, np.float32),
+                   np.asarray(first.single_action_space.high, np.float32))
 
-    def act(env, obs, index, t):
-      actions, worst = _pool_act(params, obs, index, np.int32(t), key, low, high,
-                                 policy=proto.policy, agents=proto.agents)
-      check_actions(np.asarray(worst))
-      env.step_async(np.asarray(actions))
 
-    def run_block(inputs):
-      varies = [plan.varies[i] for i in inputs["vary_index"]]
-      groups = layout(inputs["motion_index"])
-      block_envs = [envs[e] for e in _env_keys(groups)]
-      index, obs = [], []
-      for env, (m, rows, _) in zip(block_envs, groups):
-        if plan.motions[m][0]:    # a moving condition's looks: all of one vary
-          env.set_visuals(inputs["seeds"][rows], vary=varies[rows[0]])
-        else:
-          env.set_looks(inputs["seeds"][rows], [varies[i] for i in rows])
-        obs.append(env.reset(seed=inputs["resets"][rows])[0])
-        index.append(jnp.asarray(inputs["index"][rows]))
-      last = run_pipelined(block_envs, obs, index, act, proto.episode_length)
-      out = np.empty(len(inputs["index"]), np.float64)
-      for (truncated, info), (_, rows, real) in zip(last, groups):
-        if not truncated.all():
-          raise RuntimeError("episodes did not all end together; the env's episode "
-                             "length is off")
-        out[rows[real]] = np.asarray(info["episode_return"], np.float64)[real]
-      return out
-    yield run_block
+def block_runner(proto, penvs: PoolEnvs, params, key):
+  """`run_block(inputs) -> returns (K·B,)` on the open `penvs`: the block's envs as
+  `block_groups` groups, each group's looks set and envs reset, then stepped by
+  `run_pipelined` for one episode.
+
+  Args:
+    proto: the `protocol.Protocol` whose `pool_envs` `penvs` are.
+    penvs: its open `PoolEnvs`.
+    params: the policy's params (leading axis K when `proto.agents` is K).
+    key: the pass's policy key.
+  """
+  k, plan = proto.agents or 1, proto.plan
+  low, high = penvs.low, penvs.high
+
+  def act(env, obs, index, t):
+    actions, worst = _pool_act(params, obs, index, np.int32(t), key, low, high,
+                               policy=proto.policy, agents=proto.agents)
+    check_actions(np.asarray(worst))
+    env.step_async(np.asarray(actions))
+
+  def run_block(inputs):
+    varies = [plan.varies[i] for i in inputs["vary_index"]]
+    groups = block_groups(k, inputs["motion_index"][:proto.block])
+    block_envs = [penvs.envs[e] for e in _env_keys(groups)]
+    index, obs = [], []
+    for env, (m, rows, _) in zip(block_envs, groups):
+      if plan.motions[m][0]:    # a moving condition's looks: all of one vary
+        env.set_visuals(inputs["seeds"][rows], vary=varies[rows[0]])
+      else:
+        env.set_looks(inputs["seeds"][rows], [varies[i] for i in rows])
+      obs.append(env.reset(seed=inputs["resets"][rows])[0])
+      index.append(jnp.asarray(inputs["index"][rows]))
+    last = run_pipelined(block_envs, obs, index, act, proto.episode_length)
+    out = np.empty(len(inputs["index"]), np.float64)
+    for (truncated, info), (_, rows, real) in zip(last, groups):
+      if not truncated.all():
+        raise RuntimeError("episodes did not all end together; the env's episode "
+                           "length is off")
+      out[rows[real]] = np.asarray(info["episode_return"], np.float64)[real]
+    return out
+  return run_block

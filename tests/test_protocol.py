@@ -14,6 +14,7 @@ CPU depends on the batch size), so returns can be compared exactly across batch
 layouts.
 """
 
+import contextlib
 import json
 import os
 import sys
@@ -246,16 +247,41 @@ def test_padded_render_chunks_give_the_same_returns(single, two_agents):
 
 
 @pytest.mark.slow
-def test_the_pool_runs_every_condition_in_one_batch_with_the_same_returns():
+def test_the_pool_runs_every_condition_in_one_batch_with_the_same_returns(monkeypatch):
   # The pool env of every condition's looks (a vary per env) against the pool env
-  # swept one condition at a time.
+  # swept one condition at a time; inside `with`, the passes share one opening of the
+  # pool's envs and workers, a failed pass drops it (the next opens new ones), and the
+  # block's end closes it.
   render = dict(quality="fastest", workers=1)
-  got = P.evaluate(TASK, pixel_policy, make_params(), renderer="pool", **render, **OPTS)
+  opened, closed = [], []
+
+  @contextlib.contextmanager
+  def counted(proto):
+    with real(proto) as penvs:
+      opened.append(penvs)
+      yield penvs
+    closed.append(penvs)
+  real = P.pool_envs
+  monkeypatch.setattr(P, "pool_envs", counted)
   want = old_path(make_params(), renderer="pool", **render)
-  np.testing.assert_allclose(got.train[0], want["train"], rtol=1e-6)
-  for c in OPTS["conditions"]:
-    np.testing.assert_allclose(got.returns[c][0], want[c], rtol=1e-6)
+  with P.prepare(TASK, pixel_policy, renderer="pool", **render, **OPTS) as proto:
+    got = proto(make_params())
+    again = proto(make_params())
+    assert len(opened) == 1 and not closed
+    with pytest.raises(ValueError, match="outside"):
+      proto(make_params(shift=2.0))
+    assert closed == opened
+    third = proto(make_params())
+    assert len(opened) == 2
+  assert closed == opened
+  for r in (got, again, third):
+    np.testing.assert_allclose(r.train[0], want["train"], rtol=1e-6)
+    for c in OPTS["conditions"]:
+      np.testing.assert_allclose(r.returns[c][0], want[c], rtol=1e-6)
   assert "render quality fastest" in got.markdown()
+  # Outside `with`, each pass opens and closes its own.
+  P.evaluate(TASK, pixel_policy, make_params(), renderer="pool", **render, **OPTS)
+  assert len(opened) == len(closed) == 3
 
 
 def test_the_pool_pass_leaves_software_gl_every_core_and_else_steps_the_physics_on_them():
