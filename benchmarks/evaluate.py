@@ -249,9 +249,7 @@ def main(argv=None) -> None:
       rows.append(r)
       if k == 1:
         one_agent[renderer] = r
-  print(markdown(rows))
-  if a.out:
-    R.write_markdown(a.out, markdown(R.read(a.out)))
+  R.print_and_write(rows, a.out, markdown)
 
 
 if __name__ == "__main__":

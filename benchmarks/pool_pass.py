@@ -156,9 +156,7 @@ def main(argv=None) -> None:
     r["ratio"] = r["throughput"] / base["throughput"]
     R.emit(r, a.out)
     rows.append(r)
-  print(markdown(rows))
-  if a.out:
-    R.write_markdown(a.out, markdown(R.read(a.out)))
+  R.print_and_write(rows, a.out, markdown)
 
 
 if __name__ == "__main__":

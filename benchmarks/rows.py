@@ -100,6 +100,15 @@ GENERATED_MARKER = ("<!-- written by a dmcr_jax benchmark from the JSONL rows be
                     "rewritten by its next run -->")
 
 
+def print_and_write(rows: Sequence[dict], out: str | None,
+                    markdown: Callable[[list[dict]], str]) -> None:
+  """A benchmark's end: prints `markdown(rows)` and, with an `out` JSONL file, writes
+  the table of all its rows (`write_markdown`)."""
+  print(markdown(list(rows)))
+  if out:
+    write_markdown(out, markdown(read(out)))
+
+
 def write_markdown(out: str, text: str) -> str:
   """Writes `text` beside the JSONL file `out` (same name, ".md"); returns that path.
 
