@@ -153,7 +153,8 @@ class Protocol:
   _held: dict = dataclasses.field(default_factory=dict, init=False, repr=False,
                                   compare=False)
   """Inside ``with``: "stack", the `contextlib.ExitStack` of what the passes keep
-  open, and "pool", the pool pass's `protocol_pool.PoolEnvs` once opened."""
+  open, and once the pool pass has opened its envs "pool", (their own
+  `contextlib.ExitStack`, their `protocol_pool.PoolEnvs`)."""
 
   def __enter__(self) -> "Protocol":
     if "stack" in self._held:
