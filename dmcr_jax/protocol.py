@@ -152,14 +152,14 @@ class Protocol:
   env_kwargs: dict
   _held: dict = dataclasses.field(default_factory=dict, init=False, repr=False,
                                   compare=False)
-  """Inside ``with``: "stack", the `contextlib.ExitStack` of what the passes keep
-  open, and once the pool pass has opened its envs "pool", (their own
-  `contextlib.ExitStack`, their `protocol_pool.PoolEnvs`)."""
+  """Inside ``with``: "open" (True), and once a pool pass has opened its envs
+  "pool", (the `contextlib.ExitStack` that closes them, their
+  `protocol_pool.PoolEnvs`)."""
 
   def __enter__(self) -> "Protocol":
-    if "stack" in self._held:
+    if "open" in self._held:
       raise RuntimeError("this Protocol is already open (`with proto:` nested)")
-    self._held["stack"] = contextlib.ExitStack()
+    self._held["open"] = True
     return self
 
   def __exit__(self, *exc) -> None:
@@ -167,10 +167,14 @@ class Protocol:
 
   def close(self) -> None:
     """Stops the workers the passes inside ``with`` kept (nothing else to do)."""
-    stack = self._held.pop("stack", None)
-    self._held.pop("pool", None)
-    if stack is not None:
-      stack.close()
+    self._held.pop("open", None)
+    self._drop_pool()
+
+  def _drop_pool(self) -> None:
+    """Closes the kept pool envs, if any, and forgets them."""
+    held = self._held.pop("pool", None)
+    if held is not None:
+      held[0].close()
 
   @property
   def num_blocks(self) -> int:
@@ -324,20 +328,17 @@ class Protocol:
     (`protocol_pool.block_runner`): on the pool envs kept inside ``with`` (opened
     on the first pass; closed and dropped where a pass fails, so that the next
     opens new ones), else on envs opened for this pass alone."""
-    if "stack" not in self._held:
+    if "open" not in self._held:
       with pool_envs(self) as penvs:
         yield block_runner(self, penvs, params, key)
       return
     if "pool" not in self._held:
-      own = contextlib.ExitStack()
-      self._held["pool"] = (own, own.enter_context(pool_envs(self)))
-      self._held["stack"].push(own)
-    own, penvs = self._held["pool"]
+      stack = contextlib.ExitStack()
+      self._held["pool"] = (stack, stack.enter_context(pool_envs(self)))
     try:
-      yield block_runner(self, penvs, params, key)
+      yield block_runner(self, self._held["pool"][1], params, key)
     except BaseException:
-      self._held.pop("pool", None)
-      own.close()
+      self._drop_pool()
       raise
 
 
