@@ -29,30 +29,10 @@ import time
 import dmcr_jax  # noqa: F401  (first: picks a headless MUJOCO_GL before dm_control reads it)
 from dmcr_jax.benchmarks import rows as R
 
-TIMED = {"set_looks": "looks", "set_visuals": "looks", "reset": "reset",
-         "step_wait": "wait_frames", "step_submit": "submit", "step_async": "dispatch"}
-"""The pool env calls timed, and the part each adds its seconds to."""
+TIMED = {"set_looks": "looks", "set_visuals": "looks", "reset": "reset"}
+"""The pool env calls timed beside `pool_pipeline.STEP_CALLS`, and their parts."""
 PARTS = ("looks", "reset", "loop", "wait_frames", "submit", "dispatch")
 """A pass's parts (module docstring), in seconds."""
-
-
-class _Timed:
-  """A pool env whose `TIMED` calls add their seconds to `parts`."""
-
-  def __init__(self, env, parts: dict):
-    self.env, self.parts = env, parts
-
-  def __getattr__(self, name):
-    call = getattr(self.env, name)
-    if name not in TIMED:
-      return call
-
-    def timed(*args, **kwargs):
-      t0 = time.perf_counter()
-      out = call(*args, **kwargs)
-      self.parts[TIMED[name]] += time.perf_counter() - t0
-      return out
-    return timed
 
 
 def bench_pass(task: str, visual_seeds: int, train_episodes: int, image_size: int) -> dict:
@@ -60,6 +40,7 @@ def bench_pass(task: str, visual_seeds: int, train_episodes: int, image_size: in
   import jax
   from dmcr_jax import protocol, protocol_pool
   from dmcr_jax.benchmarks.evaluate import sac_agents
+  from dmcr_jax.benchmarks.pool_pipeline import STEP_CALLS, TimedEnv
   from dmcr_jax.train.evaluate import greedy_policy
   proto = protocol.prepare(task, greedy_policy, renderer="pool", quality="exact",
                            visual_seeds=visual_seeds, train_episodes=train_episodes,
@@ -78,8 +59,9 @@ def bench_pass(task: str, visual_seeds: int, train_episodes: int, image_size: in
   t0 = time.perf_counter()
   with protocol_pool.pool_envs(proto) as penvs:
     open_s = time.perf_counter() - t0
-    timed = protocol_pool.PoolEnvs({k: _Timed(e, parts) for k, e in penvs.envs.items()},
-                                   penvs.low, penvs.high)
+    calls = {**STEP_CALLS, **TIMED}
+    timed = protocol_pool.PoolEnvs(
+        {k: TimedEnv(e, parts, calls) for k, e in penvs.envs.items()}, penvs.low, penvs.high)
     protocol_pool.run_pipelined = timed_loop
     try:
       for seed in (0, 1):

@@ -42,27 +42,29 @@ PARTS = ("wait_frames", "submit", "policy", "dispatch")
 """The host calls a row's ms per step are split into (module docstring)."""
 
 
-class _Timed:
-  """A pool env whose `step_wait`, `step_submit` and `step_async` add their
-  seconds to `parts`."""
+STEP_CALLS = {"step_wait": "wait_frames", "step_submit": "submit",
+              "step_async": "dispatch"}
+"""The pool env's step calls timed here, and the part each adds its seconds to."""
 
-  def __init__(self, env, parts: dict):
-    self.env, self.parts = env, parts
 
-  def _timed(self, name, call, *args):
-    t0 = time.perf_counter()
-    out = call(*args)
-    self.parts[name] += time.perf_counter() - t0
-    return out
+class TimedEnv:
+  """A pool env whose calls named in `calls` add their seconds to `parts[calls[name]]`;
+  every other attribute is the env's."""
 
-  def step_wait(self):
-    return self._timed("wait_frames", self.env.step_wait)
+  def __init__(self, env, parts: dict, calls: dict = STEP_CALLS):
+    self.env, self.parts, self.calls = env, parts, calls
 
-  def step_submit(self):
-    return self._timed("submit", self.env.step_submit)
+  def __getattr__(self, name):
+    call = getattr(self.env, name)
+    if name not in self.calls:
+      return call
 
-  def step_async(self, actions):
-    return self._timed("dispatch", self.env.step_async, actions)
+    def timed(*args, **kwargs):
+      t0 = time.perf_counter()
+      out = call(*args, **kwargs)
+      self.parts[self.calls[name]] += time.perf_counter() - t0
+      return out
+    return timed
 
 
 def run_own_pools(envs, obs, index, act, steps: int) -> list[tuple]:
@@ -139,7 +141,7 @@ def bench_groups(task: str, envs: int, groups: int, steps: int, image_size: int,
       parts["policy"] += time.perf_counter() - t0
       env.step_async(actions)
 
-    timed = [_Timed(e, parts) for e in group_envs]
+    timed = [TimedEnv(e, parts) for e in group_envs]
     obs = [e.reset(seed=h)[0] for h, e in enumerate(group_envs)]
     loop(timed, obs, [None] * groups, act, 3)          # compiles; untimed
     for k in parts:
