@@ -18,16 +18,8 @@ the whole block (ms) into:
 Beside them: the pool's exact frames/s for the block in one render call of fixed
 states (`benchmarks.render.bench_pool`) and the ratio of each row's frames/s to it.
 
-`--pools` picks how the groups share render workers: "shared" (the protocol's: one
-`RenderPool`, whose workers draw one group's call at a time, so a group's frames
-are submitted only once the other's are collected) or "own" (a `RenderPool` per
-group, the render workers split between them: a group's frames are submitted as
-soon as its physics is done, while the other groups' workers still draw; the
-loop is `run_own_pools`).
-
     python -m dmcr_jax.benchmarks.pool_pipeline --task walker-walk --envs 240 --groups 1,2,4
     python -m dmcr_jax.benchmarks.pool_pipeline --groups 2 --workers 16 --physics-workers 0
-    python -m dmcr_jax.benchmarks.pool_pipeline --groups 2,4 --pools shared,own
 """
 
 from __future__ import annotations
@@ -67,33 +59,11 @@ class TimedEnv:
     return timed
 
 
-def run_own_pools(envs, obs, index, act, steps: int) -> list[tuple]:
-  """`protocol_pool.run_pipelined` for pool envs with a `RenderPool` each: env h's
-  frames are collected, its policy and physics dispatched and its next frames
-  submitted at once, while the other envs' workers draw. Returns per env its last
-  step's (truncated, info)."""
-  g, last = len(envs), [None] * len(envs)
-  for h in range(g):
-    act(envs[h], obs[h], index[h], 0)
-    envs[h].step_submit()
-  for t in range(steps):
-    for h in range(g):
-      o, _, _, truncated, info = envs[h].step_wait()
-      if t + 1 == steps:
-        last[h] = (truncated, info)
-        continue
-      act(envs[h], o, index[h], t + 1)
-      envs[h].step_submit()
-  return last
-
-
 def bench_groups(task: str, envs: int, groups: int, steps: int, image_size: int,
-                 workers: int | None, physics_workers: int | None = None,
-                 pools: str = "shared") -> dict:
+                 workers: int | None, physics_workers: int | None = None) -> dict:
   """One row's fields: `envs` envs as `groups` pipelined pool envs, `steps` agent
   steps (after 3 untimed ones), ms per agent step of the block by part; `workers`
-  render workers (with `pools="own"`, split between the groups' pools) and each
-  pool env's physics in `physics_workers` CPU processes (None: the protocol's,
+  render workers shared by the groups and each pool env's physics in `physics_workers` CPU processes (None: the protocol's,
   `protocol_pool.pass_workers`)."""
   import contextlib
   import jax
@@ -107,23 +77,17 @@ def bench_groups(task: str, envs: int, groups: int, steps: int, image_size: int,
   size = -(-envs // groups)
   workers, physics_workers = host_workers(groups, workers=workers,
                                          physics_workers=physics_workers)
-  workers = min(size * groups if pools == "own" else size, workers)
-  own = [max(1, workers // groups + (h < workers % groups)) for h in range(groups)]
+  workers = min(size, workers)
   params = sac_agents(task, 1, image_size, 3)
   params = jax.tree.map(lambda x: x[0], params)
   key = jax.random.key(0)
   seeds = TEST_SEEDS.start + np.arange(size * groups)
   parts = dict.fromkeys(PARTS, 0.0)
   with contextlib.ExitStack() as stack:
-    if pools == "own":
-      rows = [stack.enter_context(RenderPool(
-          task, max_batch=size, height=image_size, width=image_size, workers=own[h],
-          frame_stack=3)).rows(0, size) for h in range(groups)]
-    else:
-      pool = stack.enter_context(RenderPool(task, max_batch=size * groups,
-                                            height=image_size, width=image_size,
-                                            workers=workers, frame_stack=3))
-      rows = [pool.rows(h * size, (h + 1) * size) for h in range(groups)]
+    pool = stack.enter_context(RenderPool(task, max_batch=size * groups,
+                                          height=image_size, width=image_size,
+                                          workers=workers, frame_stack=3))
+    rows = [pool.rows(h * size, (h + 1) * size) for h in range(groups)]
     group_envs = [stack.enter_context(make(
         task, renderer="pool", num_envs=size, frame_stack=3, image_size=image_size,
         copy_obs=False, visual_seeds=seeds[h * size:(h + 1) * size], render_pool=rows[h],
@@ -131,7 +95,6 @@ def bench_groups(task: str, envs: int, groups: int, steps: int, image_size: int,
     low = np.asarray(group_envs[0].single_action_space.low, np.float32)
     high = np.asarray(group_envs[0].single_action_space.high, np.float32)
     index = jax.numpy.arange(size, dtype=jax.numpy.int32)
-    loop = run_own_pools if pools == "own" else run_pipelined
 
     def act(env, obs, _, t):
       t0 = time.perf_counter()
@@ -143,16 +106,16 @@ def bench_groups(task: str, envs: int, groups: int, steps: int, image_size: int,
 
     timed = [TimedEnv(e, parts) for e in group_envs]
     obs = [e.reset(seed=h)[0] for h, e in enumerate(group_envs)]
-    loop(timed, obs, [None] * groups, act, 3)          # compiles; untimed
+    run_pipelined(timed, obs, [None] * groups, act, 3)          # compiles; untimed
     for k in parts:
       parts[k] = 0.0
     obs = [e.reset(seed=h)[0] for h, e in enumerate(group_envs)]
     t0 = time.perf_counter()
-    loop(timed, obs, [None] * groups, act, steps)
+    run_pipelined(timed, obs, [None] * groups, act, steps)
     wall = time.perf_counter() - t0
   ms = {f"{k}_ms": 1e3 * v / steps for k, v in parts.items()}
   return dict(task=task, envs=size * groups, groups=groups, group_envs=size, steps=steps,
-              pools=pools, workers=sum(own) if pools == "own" else workers, physics_workers=physics_workers, image_size=image_size,
+              workers=workers, physics_workers=physics_workers, image_size=image_size,
               step_ms=1e3 * wall / steps,
               frames_per_s=size * groups * steps / wall, **ms)
 
@@ -184,15 +147,10 @@ def main(argv=None) -> None:
   p.add_argument("--physics-workers", type=int, default=None,
                  help="CPU physics processes per pool env, 0: this process "
                       "(default: the protocol's)")
-  p.add_argument("--pools", default="shared",
-                 help="comma-separated: shared (one RenderPool), own (one per group)")
   p.add_argument("--out", default=None, help="JSONL file the rows are appended to")
   a = p.parse_args(argv)
   from dmcr_jax.checks import positive_int
   groups = [positive_int("--groups", int(g)) for g in a.groups.split(",")]
-  pools = a.pools.split(",")
-  if set(pools) - {"shared", "own"}:
-    p.error(f"--pools takes shared, own; got {a.pools!r}")
   if a.workers is not None:
     positive_int("--workers", a.workers)
   if a.physics_workers is not None and a.physics_workers < 0:
@@ -203,29 +161,27 @@ def main(argv=None) -> None:
   from dmcr_jax.benchmarks.render import bench_pool
   from dmcr_jax.protocol_pool import host_workers
   device = jax.devices()[0]
-  own = dict(device=device.device_kind, platform=device.platform)
+  machine = dict(device=device.device_kind, platform=device.platform)
   workers = min(a.envs, host_workers(1, workers=a.workers)[0])
   frames = bench_pool(a.task, a.envs, workers, "exact", a.image_size, repeats=3)
-  base = R.row(dict(own, task=a.task, step_ms=1e3 * frames["run_s"], workers=workers),
+  base = R.row(dict(machine, task=a.task, step_ms=1e3 * frames["run_s"], workers=workers),
                "the pool's exact frames, one call", n=a.envs,
                throughput=frames["frames_per_s"], unit="frames/s", run_s=frames["run_s"],
                is_baseline=True)
   R.emit(base, a.out)
   rows = [base]
-  for kind in pools:
-    for g in groups:
-      fields = bench_groups(a.task, a.envs, g, a.steps, a.image_size, a.workers,
-                            a.physics_workers, kind)
-      w = fields["physics_workers"]
-      where = (f", {fields['workers']} render workers"
-               f"{' split between the groups' if kind == 'own' else ''}, physics "
-               f"{f'in {w} workers' if w else 'in this process'}")
-      r = R.row(dict(own, **fields), f"pipelined, {g} group{'s' * (g > 1)}{where}",
-                n=fields["envs"], throughput=fields["frames_per_s"], unit="frames/s",
-                baseline=base["variant"], baseline_throughput=base["throughput"])
-      r["ratio"] = r["throughput"] / base["throughput"]
-      R.emit(r, a.out)
-      rows.append(r)
+  for g in groups:
+    fields = bench_groups(a.task, a.envs, g, a.steps, a.image_size, a.workers,
+                          a.physics_workers)
+    w = fields["physics_workers"]
+    where = (f", {fields['workers']} render workers, physics "
+             f"{f'in {w} workers' if w else 'in this process'}")
+    r = R.row(dict(machine, **fields), f"pipelined, {g} group{'s' * (g > 1)}{where}",
+              n=fields["envs"], throughput=fields["frames_per_s"], unit="frames/s",
+              baseline=base["variant"], baseline_throughput=base["throughput"])
+    r["ratio"] = r["throughput"] / base["throughput"]
+    R.emit(r, a.out)
+    rows.append(r)
   R.print_and_write(rows, a.out, markdown)
 
 
