@@ -167,6 +167,34 @@ def test_seed_zero_matches_dm_control_pixels(domain, bank):
   assert np.abs(varied.astype(int) - ref.astype(int)).mean() > 5
 
 
+def test_a_renderer_leaves_no_model_variables_in_the_shared_model(bank):
+  """Renderers of one domain share its cached render model: the task variables one
+  draws (finger-spin hides the target) do not stay in it for the next, closed or
+  not (finger-turn_easy's target is still drawn as dm_control draws it)."""
+  rm = V.build_render_model("finger", bank)
+
+  def dm(task):
+    env = suite.load("finger", task, task_kwargs={"random": 1})
+    env.reset()
+    ref = env.physics.render(H, W, camera_id=0)
+    state = show.physics_state(env.physics, "finger")
+    env.physics.free()
+    return ref, state
+
+  _, (q_spin, v_spin) = dm("spin")
+  ref, (q_turn, v_turn) = dm("turn_easy")
+  assert set(v_spin) - set(v_turn)             # spin writes variables turn_easy leaves
+  with RM.FrameRenderer(rm, H, W) as spin:
+    spin.render(rm.sample([0]), q_spin, model_variables=v_spin)
+    with RM.FrameRenderer(rm, H, W) as turn:     # while the other is open
+      open_img = turn.render(rm.sample([0]), q_turn, model_variables=v_turn)
+  with RM.FrameRenderer(rm, H, W) as turn:       # after it closed
+    closed_img = turn.render(rm.sample([0]), q_turn, model_variables=v_turn)
+  for img in (open_img, closed_img):
+    diff = np.abs(img.astype(int) - ref.astype(int))
+    assert diff.max() <= 2 and diff.mean() <= 0.1, (diff.max(), diff.mean())
+
+
 def test_rendered_frames_are_deterministic(bank):
   rm = V.build_render_model("walker", bank)
   _, qpos, _ = dm_reference("walker")

@@ -527,6 +527,25 @@ def apply(rm: RenderModel, looks: Looks | VisualParams, index: int = 0,
 
 
 
+def _write_variables(m: mujoco.MjModel, variables: Mapping[str, Any] | None
+                     ) -> dict[tuple[str, int], np.ndarray]:
+  """Writes task model variables ("geom_pos:target" → value; keys without a colon
+  are ignored) into `m`; returns the values they replaced, by (field, element id)."""
+  saved = {}
+  for key, value in (variables or {}).items():
+    if ":" not in key:
+      continue
+    field, name = key.split(":", 1)
+    obj = FIELD_OBJECTS.get(field.split("_")[0])
+    if obj is None or not hasattr(m, field):
+      raise ValueError(f"Unsupported model variable {key!r}.")
+    i = obj_id(m, obj, name)
+    arr = getattr(m, field)
+    saved.setdefault((field, i), np.array(arr[i]))
+    arr[i] = np.asarray(value)
+  return saved
+
+
 class FrameRenderer:
   """Renders single frames of one domain's looks with `mujoco.Renderer`.
 
@@ -535,8 +554,11 @@ class FrameRenderer:
   dm_control's `physics.render` of the same state and camera.
 
   Args:
-    rm: the domain's `RenderModel` (its model is mutated; the renderer's GL
-      context holds the whole bank, uploaded once at creation).
+    rm: the domain's `RenderModel` (`apply` writes each frame's look into its
+      model; a frame's task variables are written for that frame only and the
+      defaults restored after it, so renderers sharing `rm` never see each
+      other's; the renderer's GL context holds the whole bank, uploaded once at
+      creation).
     height, width: frame size in pixels (at most the model's offscreen size,
       640×480 for the DMC domains).
   """
@@ -546,34 +568,10 @@ class FrameRenderer:
     self.height, self.width = height, width
     self.renderer = mujoco.Renderer(rm.model, height, width)
     self.data = mujoco.MjData(rm.model)
-    self._touched: dict[tuple[str, int], np.ndarray] = {}
 
   @property
   def context(self) -> mujoco.MjrContext:
     return self.renderer._mjr_context  # pylint: disable=protected-access
-
-  def set_model_variables(self, variables: Mapping[str, Any] | None) -> None:
-    """Writes task model variables ("geom_pos:target" → value), restoring others.
-
-    Args:
-      variables: `State.info`-style mapping "<model field>:<element name>" →
-        value (keys without a colon are ignored), or None for the defaults.
-    """
-    m = self.rm.model
-    for (field, i), value in self._touched.items():
-      getattr(m, field)[i] = value
-    self._touched = {}
-    for key, value in (variables or {}).items():
-      if ":" not in key:
-        continue
-      field, name = key.split(":", 1)
-      obj = FIELD_OBJECTS.get(field.split("_")[0])
-      if obj is None or not hasattr(m, field):
-        raise ValueError(f"Unsupported model variable {key!r}.")
-      i = obj_id(m, obj, name)
-      arr = getattr(m, field)
-      self._touched[(field, i)] = np.array(arr[i])
-      arr[i] = np.asarray(value)
 
   def render(self, looks: Looks | VisualParams, qpos, *, index: int = 0,
              model_variables: Mapping[str, Any] | None = None,
@@ -591,13 +589,17 @@ class FrameRenderer:
       uint8 array (height, width, 3).
     """
     apply(self.rm, looks, index, context=self.context)
-    self.set_model_variables(model_variables)
     m, d = self.rm.model, self.data
-    d.qpos[:] = np.asarray(qpos, np.float64)
-    d.qvel[:] = 0
-    mujoco.mj_fwdPosition(m, d)
-    self.renderer.update_scene(d, camera=camera)
-    return self.renderer.render().copy()
+    saved = _write_variables(m, model_variables)
+    try:
+      d.qpos[:] = np.asarray(qpos, np.float64)
+      d.qvel[:] = 0
+      mujoco.mj_fwdPosition(m, d)
+      self.renderer.update_scene(d, camera=camera)
+      return self.renderer.render().copy()
+    finally:
+      for (field, i), value in saved.items():
+        getattr(m, field)[i] = value
 
   def close(self) -> None:
     self.renderer.close()
