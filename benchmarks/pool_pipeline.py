@@ -63,8 +63,8 @@ def bench_groups(task: str, envs: int, groups: int, steps: int, image_size: int,
                  workers: int | None, physics_workers: int | None = None) -> dict:
   """One row's fields: `envs` envs as `groups` pipelined pool envs, `steps` agent
   steps (after 3 untimed ones), ms per agent step of the block by part; `workers`
-  render workers shared by the groups and each pool env's physics in `physics_workers` CPU processes (None: the protocol's,
-  `protocol_pool.pass_workers`)."""
+  render workers shared by the groups, each pool env's physics in `physics_workers`
+  CPU processes (None: the protocol's, `protocol_pool.pass_workers`)."""
   import contextlib
   import jax
   import numpy as np
@@ -106,7 +106,7 @@ def bench_groups(task: str, envs: int, groups: int, steps: int, image_size: int,
 
     timed = [TimedEnv(e, parts) for e in group_envs]
     obs = [e.reset(seed=h)[0] for h, e in enumerate(group_envs)]
-    run_pipelined(timed, obs, [None] * groups, act, 3)          # compiles; untimed
+    run_pipelined(timed, obs, [None] * groups, act, 3)   # compiles; untimed
     for k in parts:
       parts[k] = 0.0
     obs = [e.reset(seed=h)[0] for h, e in enumerate(group_envs)]
