@@ -120,6 +120,35 @@ steps = 2000
   assert lines[-1] == f"8 runs in {out}" and not os.path.exists(out)
 
 
+def test_only_runs_the_runs_it_names_and_refuses_a_pattern_of_none(tmp_path, monkeypatch,
+                                                                  capsys):
+  text = 'tasks = ["cartpole-balance", "pendulum-swingup"]\nseeds = [0, 1]\n[train]\nsteps = 10\n'
+  spec = write(tmp_path, text)
+  out, runs = plan_of(tmp_path, text)
+  names = [r.name for r in runs]
+  assert sw.select(runs, "pendulum-*,cartpole-balance-drq-s1-v0") == {
+      "pendulum-swingup-drq-s0-v0", "pendulum-swingup-drq-s1-v0",
+      "cartpole-balance-drq-s1-v0"}
+  ran = []
+  monkeypatch.setattr(sw, "run_one", lambda run, progress=False: ran.append(run.name) or dict(
+      name=run.name, state=run.state(), eval_json=None, interrupted=False))
+  result = sw.sweep(out, runs, only={"pendulum-swingup-drq-s1-v0"})
+  assert ran == ["pendulum-swingup-drq-s1-v0"]
+  assert [r["name"] for r in result["runs"]] == names    # every run listed, as it stands
+  assert {r["name"]: r["state"] for r in result["runs"]} == dict.fromkeys(names, "new")
+  assert "cartpole-balance-drq-s0-v0: new, not in --only" in capsys.readouterr().err
+  sw.main([spec, "--out", out, "--only", "cartpole-*", "--dry-run"])
+  lines = capsys.readouterr().out.splitlines()
+  assert [l.split(" ")[0] for l in lines[:-1]] == names[:2]
+  assert lines[-1] == f"2 of 4 runs in {out} (--only)"
+  with pytest.raises(SystemExit) as e:
+    sw.main([spec, "--out", out, "--only", "cartpole-*,walker-*"])
+  assert e.value.code == 2
+  err = capsys.readouterr().err
+  assert "--only 'walker-*' matches none of the spec's runs: " + ", ".join(names) in err
+  assert ran == ["pendulum-swingup-drq-s1-v0"]
+
+
 @pytest.fixture(scope="module")
 def tiny_sweep(tmp_path_factory):
   """The TINY sweep run to the end in this process; its folder, runs and result."""

@@ -51,6 +51,7 @@ folder and state.
     dmcr-sweep sweep.toml --dry-run     # the runs and what each still needs
     dmcr-sweep sweep.toml               # one after another, here
     dmcr-sweep sweep.toml --backend ray # RAY_ADDRESS=ray://head:10001 for a cluster
+    dmcr-sweep sweep.toml --only 'walker-walk-*'   # only the runs of these names (`select`)
 """
 
 from __future__ import annotations
@@ -466,21 +467,41 @@ def _local_results(runs: list[Run]):
       return
 
 
+def select(runs: list[Run], patterns: str) -> set[str]:
+  """The names of `runs` that match one of `patterns` (comma-separated shell patterns,
+  e.g. "cartpole-balance-*-levels10000,*cj+drq*"); SpecError for a pattern that
+  matches none, naming the runs."""
+  import fnmatch
+  names, chosen = [r.name for r in runs], set()
+  for pattern in (p.strip() for p in patterns.split(",")):
+    hits = fnmatch.filter(names, pattern)
+    if not hits:
+      raise SpecError(f"--only {pattern!r} matches none of the spec's runs: "
+                      f"{', '.join(names)}")
+    chosen.update(hits)
+  return chosen
+
+
 def sweep(out: str, runs: list[Run], backend: str = "local", cpus: int = 1,
-          cache: tuple | None = None) -> dict:
-  """Brings every run to "done" (`run_one`; "done" ones are skipped), then merges the
-  evaluations (`merge`) and draws the few-shot curves (`few_shot_curves`); {"runs":
-  each result, "table": the Markdown or None, "few_shot": the curves' Markdown
-  paths}. `<out>/runs.json` records them. `cache`: (`--compile-cache`,
-  `--no-compile-cache`) as given, which each Ray task applies on its node (None: the
-  tasks keep their processes' cache; local runs use this process's, which `main` sets)."""
+          cache: tuple | None = None, only: set[str] | None = None) -> dict:
+  """Brings every run (those named in `only`, when given) to "done" (`run_one`;
+  "done" ones are skipped), then merges the evaluations of all done runs (`merge`)
+  and draws the few-shot curves (`few_shot_curves`); {"runs": each result, "table":
+  the Markdown or None, "few_shot": the curves' Markdown paths}. `<out>/runs.json`
+  records them. `cache`: (`--compile-cache`, `--no-compile-cache`) as given, which
+  each Ray task applies on its node (None: the tasks keep their processes' cache;
+  local runs use this process's, which `main` sets)."""
   os.makedirs(out, exist_ok=True)
-  todo = [r for r in runs if r.state() != "done"]
+  states = {r.name: r.state() for r in runs}
+  todo = [r for r in runs if states[r.name] != "done" and (only is None or r.name in only)]
+  results = {}
   for r in runs:
-    if r not in todo:
+    if states[r.name] == "done":
       print(f"sweep: {r.name}: done, skipped", file=sys.stderr, flush=True)
-  results = {r.name: dict(name=r.name, state="done", eval_json=r.eval_json) for r in runs
-             if r not in todo}
+      results[r.name] = dict(name=r.name, state="done", eval_json=r.eval_json)
+    elif r not in todo:
+      print(f"sweep: {r.name}: {states[r.name]}, not in --only", file=sys.stderr, flush=True)
+      results[r.name] = dict(name=r.name, state=states[r.name])
   stream = _ray_results(todo, cpus, cache) if backend == "ray" else _local_results(todo)
   for result in stream:
     results[result["name"]] = result
@@ -498,8 +519,8 @@ def sweep(out: str, runs: list[Run], backend: str = "local", cpus: int = 1,
 
 
 def main(argv=None) -> None:
-  """`dmcr-sweep SPEC [--backend local|ray] [--dry-run] [--out DIR] [--compile-cache
-  DIR | --no-compile-cache]` (module doc; the cache: `dmcr_jax.train.compile_cache`);
+  """`dmcr-sweep SPEC [--backend local|ray] [--dry-run] [--only PATTERNS] [--out DIR]
+  [--compile-cache DIR | --no-compile-cache]` (module doc; the cache: `dmcr_jax.train.compile_cache`);
   exit status 1 when a run failed or was interrupted."""
   from dmcr_jax.train import compile_cache
   p = argparse.ArgumentParser(prog="dmcr-sweep", description=__doc__.splitlines()[0])
@@ -514,6 +535,10 @@ def main(argv=None) -> None:
                  help="the sweep folder (default: the spec's out, else runs/<spec name>)")
   p.add_argument("--dry-run", action="store_true",
                  help="print the runs, their state and commands, and run nothing")
+  p.add_argument("--only", default=None, metavar="PATTERNS",
+                 help="run only the runs whose names match one of these comma-separated "
+                      "shell patterns (e.g. 'cartpole-balance-*-levels10000'); the merged "
+                      "table still holds every done run")
   compile_cache.add_arguments(p)
   a = p.parse_args(argv)
   try:
@@ -529,19 +554,22 @@ def main(argv=None) -> None:
     cpus = spec.get("ray", {}).get("cpus", 1)
     if isinstance(cpus, bool) or not isinstance(cpus, int) or cpus < 1:
       raise SpecError(f"sweep spec: [ray] cpus must be a positive int, got {cpus!r}")
+    only = None if a.only is None else select(runs, a.only)
   except SpecError as e:
     p.error(str(e))
   if a.dry_run:
     for run in runs:
-      print(f"{run.name} [{run.state()}]: {run.command()}")
+      if only is None or run.name in only:
+        print(f"{run.name} [{run.state()}]: {run.command()}")
     for task, looks in few_shot_tasks(runs).items():
       print(f"few-shot curve of {task} over looks {', '.join(looks)}: "
             f"{os.path.join(out, f'few_shot_{task}')}.md, .json and .png, once its runs "
             "are evaluated")
-    print(f"{len(runs)} runs in {out}")
+    print(f"{len(runs)} runs in {out}" if only is None else
+          f"{len(only)} of {len(runs)} runs in {out} (--only)")
     return
   compile_cache.use(compile_cache.chosen(a))
-  result = sweep(out, runs, a.backend, cpus, (a.compile_cache, a.no_compile_cache))
+  result = sweep(out, runs, a.backend, cpus, (a.compile_cache, a.no_compile_cache), only)
   if result["table"]:
     print(result["table"], end="")
     print(f"wrote {os.path.join(out, 'table.md')} and table.json")
