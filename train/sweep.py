@@ -520,8 +520,8 @@ def sweep(out: str, runs: list[Run], backend: str = "local", cpus: int = 1,
 
 def main(argv=None) -> None:
   """`dmcr-sweep SPEC [--backend local|ray] [--dry-run] [--only PATTERNS] [--out DIR]
-  [--compile-cache DIR | --no-compile-cache]` (module doc; the cache: `dmcr_jax.train.compile_cache`);
-  exit status 1 when a run failed or was interrupted."""
+  [--compile-cache DIR | --no-compile-cache]` (module doc; the cache:
+  `dmcr_jax.train.compile_cache`); exit status 1 when a run failed or was interrupted."""
   from dmcr_jax.train import compile_cache
   p = argparse.ArgumentParser(prog="dmcr-sweep", description=__doc__.splitlines()[0])
   p.add_argument("spec", help="the sweep's TOML spec")
