@@ -49,7 +49,8 @@ from typing import TYPE_CHECKING, Any, Mapping
 import mujoco
 import numpy as np
 
-from dmcr_jax.models.names import FIELD_OBJECTS, obj_id, suite_compile_quiet, suite_model, suite_xml
+from dmcr_jax.models.names import (FIELD_OBJECTS, find_id, obj_id, suite_compile_quiet,
+                                    suite_model, suite_xml)
 from dmcr_jax.visuals import ranges as R
 from dmcr_jax.visuals.factors import FACTOR_INDEX, check_domain
 from dmcr_jax.visuals.textures import TextureBank, load_bank
@@ -527,6 +528,20 @@ def apply(rm: RenderModel, looks: Looks | VisualParams, index: int = 0,
 
 
 
+def variable_index(m: mujoco.MjModel, key: str) -> tuple[str, int]:
+  """A task model variable's place in `m`: "<field>:<element name>" (e.g.
+  "geom_pos:target") → (the MjModel field, the element's id); ValueError for a
+  field that is not a per-element geom/site/body/... field or a name `m` lacks."""
+  field, name = key.split(":", 1)
+  obj = FIELD_OBJECTS.get(field.split("_")[0])
+  if obj is None or not hasattr(m, field):
+    raise ValueError(f"Unsupported model variable {key!r}.")
+  i = find_id(m, obj, name)
+  if i < 0:
+    raise ValueError(f"Model variable {key!r}: no {field.split('_')[0]} named {name!r}.")
+  return field, i
+
+
 def _write_variables(m: mujoco.MjModel, variables: Mapping[str, Any] | None
                      ) -> dict[tuple[str, int], np.ndarray]:
   """Writes task model variables ("geom_pos:target" → value; keys without a colon
@@ -535,11 +550,7 @@ def _write_variables(m: mujoco.MjModel, variables: Mapping[str, Any] | None
   for key, value in (variables or {}).items():
     if ":" not in key:
       continue
-    field, name = key.split(":", 1)
-    obj = FIELD_OBJECTS.get(field.split("_")[0])
-    if obj is None or not hasattr(m, field):
-      raise ValueError(f"Unsupported model variable {key!r}.")
-    i = obj_id(m, obj, name)
+    field, i = variable_index(m, key)
     arr = getattr(m, field)
     saved.setdefault((field, i), np.array(arr[i]))
     arr[i] = np.asarray(value)

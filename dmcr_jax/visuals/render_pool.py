@@ -46,7 +46,6 @@ import mujoco
 import numpy as np
 
 from dmcr_jax.checks import positive_int
-from dmcr_jax.models.names import FIELD_OBJECTS, find_id
 from dmcr_jax.visuals import render_model as rmod
 from dmcr_jax.visuals.pool import ArraySpec, OwnsWorkerPool, WorkerPool
 from dmcr_jax.visuals.tiled import TiledRenderer, check_quality, prepare_kinematics
@@ -96,13 +95,7 @@ def default_workers() -> int:
 def _variable_specs(model: mujoco.MjModel, keys) -> dict[str, tuple[str, int, tuple]]:
   out = {}
   for key in keys:
-    field, name = key.split(":", 1)
-    obj = FIELD_OBJECTS.get(field.split("_")[0])
-    if obj is None or not hasattr(model, field):
-      raise ValueError(f"Unsupported model variable {key!r}.")
-    i = find_id(model, obj, name)
-    if i < 0:
-      raise ValueError(f"Model variable {key!r}: no {field.split('_')[0]} named {name!r}.")
+    field, i = rmod.variable_index(model, key)
     out[key] = (field, i, tuple(np.shape(getattr(model, field)[i])))
   return out
 
