@@ -10,7 +10,10 @@ sizes, evaluated with `dmcr-evaluate`'s greedy policy):
   (the run alone: nothing compiles or starts again), and
   agent-steps/s of the second pass (every env's steps, K agents' together); of
   the first pass also the seconds JAX spent tracing and lowering ("trace_s") and
-  XLA spent compiling ("xla_compile_s"), as JAX's monitoring events report them;
+  XLA spent compiling ("xla_compile_s"), as JAX's monitoring events report them,
+  and the seconds of its blocks after the first ("later_blocks_s"). With
+  `--passes 1` the row is the first pass alone: its agent-steps/s count the start
+  and the compilation;
 - ray caster ("jax"): the JAX env's own agent-steps/s at the same batch size (the
   envs of one block: `jax_env.PixelEnv.step` with zero actions in one jitted
   `lax.scan` over an episode, no policy, its frames kept as the result so that
@@ -28,7 +31,7 @@ sizes, evaluated with `dmcr-evaluate`'s greedy policy):
     python -m dmcr_jax.benchmarks.evaluate --task walker-walk --agents 1,4 --equal-batch \\
         --no-baseline --out benchmarks/results/evaluate_h200.jsonl   # K=4 beside K=1, same envs
     python -m dmcr_jax.benchmarks.evaluate --task walker-walk --renderers pool --agents 1 \\
-        --visual-seeds 10 --train-episodes 30 --out benchmarks/results/evaluate_h200.jsonl
+        --passes 1 --out benchmarks/results/evaluate_h200.jsonl   # the full pool protocol once
 
 One JSON line per row (`dmcr_jax.benchmarks.rows`) and a Markdown table beside
 the JSONL file.
@@ -118,7 +121,8 @@ def sizes_for(k: int, args) -> tuple[int, int]:
 
 
 def bench_protocol(task: str, renderer: str, k: int, args) -> dict:
-  """Two passes of the protocol for K agents (the second with other params)."""
+  """Two passes of the protocol for K agents (the second with other params), or with
+  `--passes 1` one, whose time (start and compilation included) is then the row's."""
   import jax
   from dmcr_jax import protocol, protocol_pool
   from dmcr_jax.train import evaluate
@@ -137,10 +141,22 @@ def bench_protocol(task: str, renderer: str, k: int, args) -> dict:
     with compile_seconds() as seconds:
       first = proto(first_params)
     first_s = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    second = proto(second_params)
-    run_s = time.perf_counter() - t0
+    second, run_s = first, first_s
+    if args.passes == 2:
+      t0 = time.perf_counter()
+      second = proto(second_params)
+      run_s = time.perf_counter() - t0
   steps = second.agent_steps
+  # The first pass after its first block (which compiles and, for the pool, follows
+  # the workers' start): its seconds, and what the pass spent beyond its blocks at
+  # that pace ("compile s" of a one-pass row; None with one block).
+  blocks = proto.num_blocks
+  later_s = first.wall_s - first.compile_s
+  compile_s = max(first_s - run_s, 0.0)
+  if args.passes == 1:
+    compile_s = first_s - blocks * later_s / (blocks - 1) if blocks > 1 else None
+  later = dict(later_blocks_s=later_s if blocks > 1 else None,
+               later_blocks_agent_steps=steps * (blocks - 1) // blocks)
   workers = protocol_pool.workers_for(proto) if renderer == "pool" else (None, None)
   return dict(task=task, renderer=renderer, agents=k, conditions=list(proto.conditions),
               visual_seeds=visual_seeds, dynamics_seeds=args.dynamics_seeds,
@@ -150,7 +166,8 @@ def bench_protocol(task: str, renderer: str, k: int, args) -> dict:
               workers=workers[0], physics_workers=workers[1],
               blocks=proto.num_blocks, episode_length=proto.episode_length,
               action_repeat=proto.env_kwargs["frame_skip"], first_pass_s=first_s,
-              compile_s=max(first_s - run_s, 0.0), run_s=run_s, agent_steps=steps, **seconds,
+              compile_s=compile_s, run_s=run_s, agent_steps=steps, **seconds,
+              passes=args.passes, first_block_s=first.compile_s, **later,
               agent_steps_per_s=steps / run_s, mean_all=float(first.mean(
                   proto.conditions[-1]).mean()),
               device=jax.devices()[0].device_kind, platform=jax.default_backend())
@@ -169,8 +186,9 @@ def markdown(rows: list[dict]) -> str:
     base = (f"{r['baseline_throughput']:,.0f} ({r['baseline']})"
             if r.get("baseline_throughput") else "–")
     xla = f"{r['xla_compile_s']:.1f}" if r.get("xla_compile_s") is not None else "–"
+    compile_s = f"{r['compile_s']:.1f}" if r.get("compile_s") is not None else "–"
     lines.append(f"| {r['task']} | {r['renderer']} | {r['variant']} | "
-                 f"{r['block_envs']:,} × {r['blocks']} | {r['compile_s']:.1f} | {xla} | "
+                 f"{r['block_envs']:,} × {r['blocks']} | {compile_s} | {xla} | "
                  f"{r['run_s']:.1f} | {r['throughput']:,.0f} {r['unit']} | {base} | {ratio} |")
   return "\n".join(lines) + "\n"
 
@@ -193,6 +211,9 @@ def main(argv=None) -> None:
   p.add_argument("--max-envs", type=int, default=None,
                  help="envs per block (default: every episode in one block)")
   p.add_argument("--workers", type=int, default=None, help="render workers (pool)")
+  p.add_argument("--passes", type=int, choices=(1, 2), default=2,
+                 help="2: the row times a second pass (nothing compiles in it); 1: the "
+                      "first pass alone, start and compilation included")
   p.add_argument("--no-baseline", action="store_true", help="only the protocol's rows")
   p.add_argument("--equal-batch", action="store_true",
                  help="K agents share --visual-seeds (a K-th each), so every K steps as "

@@ -398,6 +398,14 @@ def test_the_benchmark_rows_put_the_protocol_beside_the_env(tmp_path, capsys, mo
     assert r["baseline_throughput"] == base["throughput"]
     assert r["ratio"] == pytest.approx(r["throughput"] / base["throughput"])
   assert "| cartpole-balance | jax | protocol K=2 |" in (tmp_path / "evaluate.md").read_text()
+  # One pass (the programs above serve it): the row's time is that pass's.
+  bench.main(["--task", TASK, "--agents", "2", "--visual-seeds", "2", "--dynamics-seeds",
+              "1", "--train-episodes", "2", "--conditions", "none,all", "--image-size", "16",
+              "--action-repeat", "100", "--passes", "1", "--no-baseline", "--out", out])
+  once = R.read(out)[-1]
+  assert once["passes"] == 1 and once["run_s"] == once["first_pass_s"]
+  assert once["throughput"] == pytest.approx(once["agent_steps"] / once["first_pass_s"])
+  assert once["compile_s"] is None and once["later_blocks_s"] is None   # one block
 
 
 def test_equal_batch_gives_each_of_k_agents_a_kth_of_the_looks(capsys):
