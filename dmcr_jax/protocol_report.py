@@ -381,7 +381,8 @@ def few_shot_markdown(summary: dict, rows: list[dict]) -> str:
            "| " + " | ".join(head) + " |", "|---|---|---:|" + "---:|" * (len(head) - 3)]
   for r in rows:
     e_g, n = r["e_g"][last], len(r["seeds"])
-    cells = [r["method"] or r["aug"], f"{r['looks']:,} ({r['train_look']})", str(n),
+    looks = "all" if r["train_look"] == "levels:all" else f"{r['looks']:,}"
+    cells = [r["method"] or r["aug"], f"{looks} ({r['train_look']})", str(n),
              _spread(r["train"], r["train_min"], r["train_max"], n)]
     cells += [_spread(r["conditions"][c], r["conditions_min"][c], r["conditions_max"][c], n)
               for c in conditions]

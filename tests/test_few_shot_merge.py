@@ -22,7 +22,7 @@ from dmcr_jax.benchmarks import few_shot
 from dmcr_jax.train import evaluate as ev
 from dmcr_jax.train import loop, paper_results
 from dmcr_jax.train import sweep as sw
-from dmcr_jax.visuals.levels import levels
+from dmcr_jax.visuals.levels import TRAIN_SEEDS, levels
 
 CONDITIONS = ("none", "floor", "all")
 CONFIG = ev.EvalConfig(visual_seeds=2, dynamics_seeds=2, train_episodes=3, conditions=CONDITIONS,
@@ -93,6 +93,10 @@ def test_rows_give_the_mean_and_min_max_over_seeds():
   table = protocol_report.few_shot_markdown(one, rows)
   assert not re.search(r"\(\d+\.\d–", table) and "min–max" not in table
   assert f"| {rows[1]['conditions']['all']:.1f} |" in table
+  # Every training seed: named "all", not counted.
+  every = eval_summary("runs/c", [TRAIN_SEEDS.stop], [0])
+  table = protocol_report.few_shot_markdown(every, protocol_report.few_shot_rows(every))
+  assert "| SAC+AUG | all (levels:all) | 1 |" in table
 
 
 def test_the_plot_draws_a_min_max_band_around_all_and_train():
