@@ -259,10 +259,13 @@ def test_lambda_gradient_flows_only_through_the_augmented_pass(agent, batch):
   assert not np.allclose(np.asarray(both["params"]["fc"]["kernel"]),
                          np.asarray(want["params"]["fc"]["kernel"]), rtol=1e-2)
 
-  # With the identity as augmentation the λ term and its gradient vanish.
-  grad, _ = _lam_grad(agent, batch, augment.get("none"), jax.random.key(2))
-  for leaf in jax.tree_util.tree_leaves(grad):
-    assert not np.any(np.asarray(leaf))
+  # With the identity as augmentation the λ term and its gradient vanish: e(o) and
+  # e(aug(o)) are then the same features up to float32 rounding (XLA may compute the
+  # two passes with different blockings), so the gradient is rounding-sized against
+  # the augmented one's.
+  none, _ = _lam_grad(agent, batch, augment.get("none"), jax.random.key(2))
+  for leaf, drq in zip(jax.tree_util.tree_leaves(none), jax.tree_util.tree_leaves(grad)):
+    assert np.abs(np.asarray(leaf)).max() <= 1e-5 * np.abs(np.asarray(drq)).max()
 
 
 def test_actor_loss_gradient_never_reaches_the_encoder(agent, batch):
