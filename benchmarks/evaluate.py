@@ -11,9 +11,9 @@ sizes, evaluated with `dmcr-evaluate`'s greedy policy):
   agent-steps/s of the second pass (every env's steps, K agents' together); of
   the first pass also the seconds JAX spent tracing and lowering ("trace_s") and
   XLA spent compiling ("xla_compile_s"), as JAX's monitoring events report them,
-  and the seconds of its blocks after the first ("later_blocks_s"). With
-  `--passes 1` the row is the first pass alone: its agent-steps/s count the start
-  and the compilation;
+  and the seconds of its first block ("first_block_s": the pass less what came
+  before its blocks, e.g. the pool's start). With `--passes 1` the row is the first
+  pass alone: its agent-steps/s count the start and the compilation;
 - ray caster ("jax"): the JAX env's own agent-steps/s at the same batch size (the
   envs of one block: `jax_env.PixelEnv.step` with zero actions in one jitted
   `lax.scan` over an episode, no policy, its frames kept as the result so that
@@ -147,16 +147,8 @@ def bench_protocol(task: str, renderer: str, k: int, args) -> dict:
       second = proto(second_params)
       run_s = time.perf_counter() - t0
   steps = second.agent_steps
-  # The first pass after its first block (which compiles and, for the pool, follows
-  # the workers' start): its seconds, and what the pass spent beyond its blocks at
-  # that pace ("compile s" of a one-pass row; None with one block).
-  blocks = proto.num_blocks
-  later_s = first.wall_s - first.compile_s
-  compile_s = max(first_s - run_s, 0.0)
-  if args.passes == 1:
-    compile_s = first_s - blocks * later_s / (blocks - 1) if blocks > 1 else None
-  later = dict(later_blocks_s=later_s if blocks > 1 else None,
-               later_blocks_agent_steps=steps * (blocks - 1) // blocks)
+  # A one-pass row has no pass without compilation to set apart: no "compile s".
+  compile_s = max(first_s - run_s, 0.0) if args.passes == 2 else None
   workers = protocol_pool.workers_for(proto) if renderer == "pool" else (None, None)
   return dict(task=task, renderer=renderer, agents=k, conditions=list(proto.conditions),
               visual_seeds=visual_seeds, dynamics_seeds=args.dynamics_seeds,
@@ -167,7 +159,7 @@ def bench_protocol(task: str, renderer: str, k: int, args) -> dict:
               blocks=proto.num_blocks, episode_length=proto.episode_length,
               action_repeat=proto.env_kwargs["frame_skip"], first_pass_s=first_s,
               compile_s=compile_s, run_s=run_s, agent_steps=steps, **seconds,
-              passes=args.passes, first_block_s=first.compile_s, **later,
+              passes=args.passes, first_block_s=first.compile_s,
               agent_steps_per_s=steps / run_s, mean_all=float(first.mean(
                   proto.conditions[-1]).mean()),
               device=jax.devices()[0].device_kind, platform=jax.default_backend())
