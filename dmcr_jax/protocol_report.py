@@ -21,6 +21,7 @@ import numpy as np
 
 from dmcr_jax._files import json_safe  # noqa: F401 (re-exported)
 from dmcr_jax.train import paper_results
+from dmcr_jax.visuals.levels import TRAIN_SEEDS
 
 
 def generalization_error(train: float, test: float) -> float:
@@ -381,7 +382,7 @@ def few_shot_markdown(summary: dict, rows: list[dict]) -> str:
            "| " + " | ".join(head) + " |", "|---|---|---:|" + "---:|" * (len(head) - 3)]
   for r in rows:
     e_g, n = r["e_g"][last], len(r["seeds"])
-    looks = "all" if r["train_look"] == "levels:all" else f"{r['looks']:,}"
+    looks = "all" if r["looks"] == len(TRAIN_SEEDS) else f"{r['looks']:,}"
     cells = [r["method"] or r["aug"], f"{looks} ({r['train_look']})", str(n),
              _spread(r["train"], r["train_min"], r["train_max"], n)]
     cells += [_spread(r["conditions"][c], r["conditions_min"][c], r["conditions_max"][c], n)
