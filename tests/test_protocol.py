@@ -384,9 +384,10 @@ def test_the_benchmark_rows_put_the_protocol_beside_the_env(tmp_path, capsys, mo
     return dict(trace_s=0.0, xla_compile_s=0.0, compile_s=1.0, run_s=2.0,
                 agent_steps_per_s=n * steps / 2.0)
   monkeypatch.setattr(bench, "env_baseline", baseline)
-  bench.main(["--task", TASK, "--agents", "2", "--visual-seeds", "2", "--dynamics-seeds",
-              "1", "--train-episodes", "2", "--conditions", "none,all", "--image-size", "16",
-              "--action-repeat", "100", "--out", out])
+  sizes = ["--task", TASK, "--agents", "2", "--visual-seeds", "2", "--dynamics-seeds", "1",
+           "--train-episodes", "2", "--conditions", "none,all", "--image-size", "16",
+           "--action-repeat", "100", "--out", out]
+  bench.main(sizes)
   rows = R.read(out)
   assert [r["variant"] for r in rows] == ["JAX env (zero actions)", "protocol K=2"]
   assert calls == [(TASK, 8, 10, 100, 3, 16)]    # the protocol's block, episode and sizes
@@ -399,9 +400,7 @@ def test_the_benchmark_rows_put_the_protocol_beside_the_env(tmp_path, capsys, mo
     assert r["ratio"] == pytest.approx(r["throughput"] / base["throughput"])
   assert "| cartpole-balance | jax | protocol K=2 |" in (tmp_path / "evaluate.md").read_text()
   # One pass (the programs above serve it): the row's time is that pass's.
-  bench.main(["--task", TASK, "--agents", "2", "--visual-seeds", "2", "--dynamics-seeds",
-              "1", "--train-episodes", "2", "--conditions", "none,all", "--image-size", "16",
-              "--action-repeat", "100", "--passes", "1", "--no-baseline", "--out", out])
+  bench.main(sizes + ["--passes", "1", "--no-baseline"])
   once = R.read(out)[-1]
   assert once["passes"] == 1 and once["run_s"] == once["first_pass_s"]
   assert once["throughput"] == pytest.approx(once["agent_steps"] / once["first_pass_s"])
