@@ -7,10 +7,11 @@ of the envs and runs `physics_env.init` and `physics_env.step` on it with its
 own XLA:CPU; the slices step at the same time (measurements:
 `benchmarks/results/physics_processes_h200host.md`).
 
-Each worker compiles its `init` and `step` in a background thread as soon as it
-has started, for its slice's size and the seed argument's kind the env starts
-with, so that the compilation overlaps whatever the training process does before
-its first physics call instead of following it. The workers share a persistent
+The constructor returns once the workers are launched (the first call waits for
+their start). Each worker compiles its `init` and `step` in a background thread as
+soon as it has started, for its slice's size and the seed argument's kind the env
+starts with, so that the start and the compilation overlap whatever the training
+process does before its first physics call instead of following it. The workers share a persistent
 compilation cache (JAX's, the folder this process's JAX config or
 `JAX_COMPILATION_CACHE_DIR` names, with this process's size bound and minimum
 compile time, e.g. a CLI's `--compile-cache`; else a folder of the pool's own):
@@ -245,7 +246,7 @@ class PhysicsPool(OwnsWorkerPool):
       self._pool = WorkerPool(
           _Stepper, (task.name, task.solver_iterations, task.ls_iterations, frame_skip),
           inputs, ArraySpec((), record), max_batch=n, workers=workers, timeout=timeout,
-          buffers=2, kind="physics",
+          buffers=2, kind="physics", wait_start=False,
           worker_args=[((b - a,), bool(ranged), compiled, w == 0)
                        for w, (a, b) in enumerate(slice_bounds(n, workers))],
           env={"JAX_PLATFORMS": "cpu", "XLA_PYTHON_CLIENT_PREALLOCATE": "false",

@@ -232,7 +232,9 @@ class PoolEnvs(NamedTuple):
 def pool_envs(proto):
   """A context giving the `PoolEnvs` of `proto`'s pool pass: one pool env per motion
   and size over the pass's blocks (`_pass_env_keys`), all drawn by one `RenderPool`'s
-  workers, which stop, with the envs' physics workers, when the context ends.
+  workers, which stop, with the envs' physics workers, when the context ends. The
+  render workers start while the envs' physics workers start and compile (the
+  first frames wait for them).
 
   Args:
     proto: the `protocol.Protocol` (its task, plan, sizes and render options).
@@ -253,7 +255,8 @@ def pool_envs(proto):
   with contextlib.ExitStack() as stack:
     pool = stack.enter_context(RenderPool(proto.task, max_batch=int(starts[-1]),
                                           height=h, width=w, workers=workers,
-                                          frame_stack=frame_stack, **opts))
+                                          frame_stack=frame_stack, wait_start=False,
+                                          **opts))
     envs = {}
     for j, (m, size, n) in enumerate(keys):
       moving, intensity = plan.motions[m]

@@ -65,3 +65,23 @@ class EnvValueRenderer:
 
   def __call__(self, inputs, out):
     out[:] = float(os.environ["DMCR_POOL_TEST_VAR"])
+
+
+class GatedRenderer(ToyRenderer):
+  """A ToyRenderer whose start waits until the file `gate` exists (at most 60 s)."""
+
+  def __init__(self, marker: str, gate: str):
+    super().__init__(marker)
+    deadline = time.monotonic() + 60
+    while not os.path.exists(gate) and time.monotonic() < deadline:
+      time.sleep(0.05)
+
+
+class FailingStartRenderer:
+  """A renderer whose construction raises (a worker that cannot start)."""
+
+  def __init__(self):
+    raise RuntimeError("no renderer here")
+
+  def __call__(self, inputs, out):  # never reached
+    out[:] = 0

@@ -260,3 +260,36 @@ def test_submit_returns_before_wait_and_wait_completes_the_call(tmp_path):
     np.testing.assert_array_equal(pool.wait(), expected(n))
     fill(pool, n)
     np.testing.assert_array_equal(pool.run(n), expected(n))  # the pool is usable again
+
+
+def test_a_pool_not_waiting_for_its_start_returns_at_once_and_its_first_call_waits(tmp_path):
+  gate = tmp_path / "gate"
+  # Were the start awaited here, the constructor would wait for the gate until the
+  # start timeout and fail.
+  pool = WorkerPool(fx.GatedRenderer, (str(tmp_path / "fault"), str(gate)), IN, OUT,
+                    max_batch=8, workers=2, start_timeout=30.0, wait_start=False)
+  with pool:
+    assert len(pool.pids) == 2
+    gate.touch()
+    fill(pool, 5)
+    np.testing.assert_array_equal(pool.run(5), expected(5))
+
+
+@pytest.mark.parametrize("wait_start", [True, False])
+def test_a_worker_that_fails_to_start_raises_and_leaves_nothing(wait_start):
+  def start():
+    return WorkerPool(fx.FailingStartRenderer, (), IN, OUT, max_batch=4, workers=2,
+                      wait_start=wait_start)
+
+  if wait_start:
+    with pytest.raises(WorkerError, match="(?s)failed to start.*no renderer here"):
+      start()
+    return
+  pool = start()
+  pids = pool.pids
+  with pytest.raises(WorkerError, match="(?s)failed to start.*no renderer here"):
+    fill(pool, 3)
+    pool.run(3)
+  assert not any(alive(p) for p in pids)
+  with pytest.raises(RuntimeError, match="closed"):
+    pool.run(1)

@@ -326,6 +326,10 @@ class WorkerPool:
       "physics").
     on_close: called once by `close()` after the workers stopped (also at exit
       for a pool never closed), e.g. to remove a folder the workers used.
+    wait_start: True waits here for every worker to have started; False returns
+      once they are launched, and the first `submit` waits for them (raising, and
+      closing the pool, where one failed to start), so that what the caller does
+      next (e.g. starting another pool) overlaps their start-up.
   """
 
   def __init__(self, factory: Callable[..., Any], factory_args: Sequence[Any],
@@ -336,7 +340,7 @@ class WorkerPool:
                env: Mapping[str, str] | None = None, buffers: int = 1,
                kind: str = "render", worker_env: Sequence[Mapping[str, str]] = (),
                worker_args: Sequence[Sequence[Any]] = (),
-               on_close: Callable[[], Any] | None = None):
+               on_close: Callable[[], Any] | None = None, wait_start: bool = True):
     if int(workers) < 1:
       raise ValueError(f"workers must be >= 1, got {workers}")
     if int(max_batch) < 1:
@@ -368,6 +372,7 @@ class WorkerPool:
     self.restarts = 0
     self._closed = False
     self._on_close = on_close
+    self._starting: list[int] = []   # workers launched whose "ready" is not yet read
     _handle_sigterm()
     _LIVE.add(self)
     try:
@@ -379,8 +384,9 @@ class WorkerPool:
       self._latest = np.ones(self.max_batch, np.int8)  # the buffer of each row's output
       for w in range(self.num_workers):
         self._start(w)
-      for w in range(self.num_workers):
-        self._await_ready(w)
+      self._starting = list(range(self.num_workers))
+      if wait_start:
+        self._await_starts()
     except BaseException:
       self.close()
       raise
@@ -423,6 +429,17 @@ class WorkerPool:
     if not ready:
       raise WorkerError(f"{self.kind} worker {w} did not start within {self.start_timeout} s")
     raise WorkerError(f"{self.kind} worker {w} exited during start-up (code {proc.exitcode})")
+
+  def _await_starts(self) -> None:
+    """Waits for every launched worker's "ready"; closes the pool and raises
+    `WorkerError` where one failed to start."""
+    try:
+      while self._starting:
+        self._await_ready(self._starting[0])
+        self._starting.pop(0)
+    except BaseException:
+      self.close()
+      raise
 
   def _kill(self, w: int) -> None:
     proc, conn = self._procs[w], self._conns[w]
@@ -536,6 +553,7 @@ class WorkerPool:
       raise ValueError(f"start must be in [0, {self.max_batch}), got {start}")
     if not 1 <= batch <= self.max_batch - start:
       raise ValueError(f"batch must be in [1, {self.max_batch - start}], got {batch}")
+    self._await_starts()
     self._call_id += 1
     self._cur = 0 if len(self._outputs) == 1 else 1 - int(self._latest[start])
     self._latest[start:start + batch] = self._cur

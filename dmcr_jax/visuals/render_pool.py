@@ -212,6 +212,8 @@ class RenderPool(OwnsWorkerPool):
       (N, H, W, 3k), built in the workers (see the module docstring).
     egl_devices: EGL device indices the workers are spread over (see the module
       docstring; None: MuJoCo's default device).
+    wait_start: False returns once the workers are launched; the first `submit`
+      waits for them to have started (`WorkerPool`'s `wait_start`).
 
   Use as a context manager, or call `close()`.
   """
@@ -221,7 +223,7 @@ class RenderPool(OwnsWorkerPool):
                quality: str = "exact", gl: str | None = None,
                tiles: int | None = None, timeout: float | None = None,
                frame_stack: int = 1,
-               egl_devices=None):
+               egl_devices=None, wait_start: bool = True):
     from dmcr_jax import models
     if "-" in task:
       domain, _ = models.split_name(task)
@@ -256,7 +258,8 @@ class RenderPool(OwnsWorkerPool):
         # Workers never compute with JAX: keep it off the GPU (it would reserve
         # most of the GPU's memory in every worker).
         env={"MUJOCO_GL": gl, "PYOPENGL_PLATFORM": gl, "JAX_PLATFORMS": "cpu"},
-        worker_env=[{"MUJOCO_EGL_DEVICE_ID": str(d)} for d in self.egl_devices or ()])
+        worker_env=[{"MUJOCO_EGL_DEVICE_ID": str(d)} for d in self.egl_devices or ()],
+        wait_start=wait_start)
     self.max_batch = self._pool.max_batch
     self.num_workers = self._pool.num_workers
 
