@@ -161,12 +161,12 @@ def test_protocol_table_arithmetic_and_determinism(run_dir, tmp_path):
 @pytest.mark.slow
 def test_invariance_is_zero_without_visual_change_and_positive_with_floors(run_dir, tmp_path):
   from dmcr_jax.train import analysis
-  # 7 held-out looks + the training look: 8 envs, the size of the protocol test's env
-  # (2 agents × 4 episodes), whose physics compilation this reuses.
-  result = analysis.encoder_invariance(run_dir, str(tmp_path), looks=7, steps=2,
+  # 27 held-out looks + the training look: 28 envs, the size of the protocol test's
+  # pool envs (2 agents × 14 episodes), whose physics compilation this reuses.
+  result = analysis.encoder_invariance(run_dir, str(tmp_path), looks=27, steps=2,
                                        vary=("none", "floor"), quality="fastest", workers=1)
   assert result["physical_state_equal"] == {"none": True, "floor": True}
-  assert result["looks_differing"] == {"none": 0, "floor": 6}
+  assert result["looks_differing"] == {"none": 0, "floor": 26}
   # Same state, same look: identical pixels, features equal up to float rounding
   # (batch rows may take different vector paths); other floors move them.
   assert max(result["std"]["none"]) < 1e-6
@@ -197,16 +197,16 @@ def test_conv_activations_match_a_numpy_convolution():
 def test_episode_video_tiles_the_looks_frame_by_frame(run_dir, tmp_path):
   import imageio.v2 as imageio
   from dmcr_jax.train import analysis
-  # Eight looks: 8 envs, as the protocol and invariance tests' envs, whose physics
+  # 28 looks: 28 envs, as the protocol and invariance tests' envs, whose physics
   # compilation this reuses.
-  path = analysis.episode_video(run_dir, str(tmp_path), looks=8, quality="fastest", workers=1,
-                                scale=2)
+  path = analysis.episode_video(run_dir, str(tmp_path), looks=28, quality="fastest",
+                                workers=1, scale=2)
   assert os.path.basename(path) in ("episode.mp4", "episode.gif")
   frames = imageio.mimread(path) if path.endswith(".gif") else list(imageio.get_reader(path))
-  # One frame per agent step (10 per episode at action repeat 100); eight 16 px looks
+  # One frame per agent step (10 per episode at action repeat 100); 28 16 px looks
   # side by side, doubled.
   assert len(frames) == 10
-  assert np.asarray(frames[0]).shape[:2] == (32, 256)
+  assert np.asarray(frames[0]).shape[:2] == (32, 28 * 32)
 
 
 class FakeBlocks:

@@ -162,7 +162,10 @@ def test_training_logs_each_agents_range(levels_run):
 def test_evaluate_draws_the_curve_against_training_looks(levels_run, tmp_path):
   import matplotlib.image
   out, _ = levels_run
-  cfg = ev.EvalConfig(visual_seeds=2, dynamics_seeds=2, train_episodes=3,
+  # 28 episodes an agent (3 conditions × 3 looks × 3 states, 1 train) in two pipelined
+  # groups of 14: pool envs of 28 (2 agents × 14), the size of test_evaluate's envs,
+  # whose physics compilation this shares.
+  cfg = ev.EvalConfig(visual_seeds=3, dynamics_seeds=3, train_episodes=1,
                       conditions=("none", "floor", "all"), quality="fastest", workers=1)
   summary = ev.evaluate(out, cfg, out_dir=str(tmp_path), progress=False)
   agents = summary["agents"]
