@@ -58,26 +58,33 @@ def make_params(seed=0, noise=0.0, scale=1.0, shift=0.0):
   return dict(w=w, b=f(-0.5), noise=f(noise), scale=f(scale), shift=f(shift))
 
 
-def old_path(params, renderer="jax", **render):
+def old_path(params, renderer="jax", copies=1, **render):
   """The protocol as `dmcr-evaluate` ran it: one `dmcr_jax.make` env, a condition at a
-  time (`set_visuals`), a host round trip and a NumPy action every step."""
+  time (`set_visuals`), a host round trip and a NumPy action every step. With
+  `copies` > 1 the env holds that many copies of the episodes side by side (an env of
+  another size); each copy's returns are the same, and the first copy's are returned."""
   per_env = np.repeat(P.held_out_seeds(OPTS["visual_seeds"], OPTS["seed"]),
                       OPTS["dynamics_seeds"])
   n = per_env.size
   resets = P.reset_seeds(n, OPTS["seed"])
   policy = jax.jit(lambda obs: pixel_policy(params, obs, jax.random.key(0)))
-  env = dmcr_jax.make(TASK, num_envs=n, visual_seeds=per_env, vary="none",
+  tile = lambda x: np.tile(x, copies)
+  env = dmcr_jax.make(TASK, num_envs=n * copies, visual_seeds=tile(per_env), vary="none",
                       frame_skip=OPTS["action_repeat"], image_size=OPTS["image_size"],
                       seed=OPTS["seed"], renderer=renderer, **render)
 
-  run_episodes = lambda: host_episode_returns(env, policy, resets)
+  def run_episodes():
+    returns = host_episode_returns(env, policy, tile(resets)).reshape(copies, n)
+    for again in returns[1:]:
+      np.testing.assert_allclose(again, returns[0], rtol=1e-6)
+    return returns[0]
 
   out = {}
   with env:
     for c in OPTS["conditions"]:
-      env.set_visuals(per_env, vary=c)
+      env.set_visuals(tile(per_env), vary=c)
       out[c] = run_episodes()
-    env.set_visuals(P.train_look_seeds(OPTS["train_look"], n, OPTS["seed"]), vary="all")
+    env.set_visuals(tile(P.train_look_seeds(OPTS["train_look"], n, OPTS["seed"])), vary="all")
     out["train"] = run_episodes()[:OPTS["train_episodes"]]
   return out
 
@@ -251,7 +258,9 @@ def test_the_pool_runs_every_condition_in_one_batch_with_the_same_returns(monkey
   # The pool env of every condition's looks (a vary per env) against the pool env
   # swept one condition at a time; inside `with`, the passes share one opening of the
   # pool's envs and workers, a failed pass drops it (the next opens new ones), and the
-  # block's end closes it.
+  # block's end closes it. The swept env holds two copies of the episodes: 8 envs, the
+  # size of the pass's pool envs (15 episodes in two pipelined groups), whose physics
+  # compilation it shares.
   render = dict(quality="fastest", workers=1)
   opened, closed = [], []
 
@@ -263,7 +272,7 @@ def test_the_pool_runs_every_condition_in_one_batch_with_the_same_returns(monkey
     closed.append(penvs)
   real = P.pool_envs
   monkeypatch.setattr(P, "pool_envs", counted)
-  want = old_path(make_params(), renderer="pool", **render)
+  want = old_path(make_params(), renderer="pool", copies=2, **render)
   with P.prepare(TASK, pixel_policy, renderer="pool", **render, **OPTS) as proto:
     got = proto(make_params())
     again = proto(make_params())

@@ -24,8 +24,8 @@ from dmcr_jax import protocol as P
 from dmcr_jax import protocol_pool, protocol_report
 from tests.host_episodes import host_episode_returns
 
-# In test_protocol's group, with its sizes (4 envs a condition): the host-stepped pool
-# envs step the physics that its host-stepped pool env compiled.
+# In test_protocol's group: the pool test's envs (8: 2 looks × 4 initial states) step
+# the physics that its pool pass compiled.
 pytestmark = pytest.mark.xdist_group("protocol")
 
 TASK = "cartpole-balance"
@@ -46,16 +46,16 @@ def policy(params, obs, key):
 PARAMS = dict(w=jax.random.normal(jax.random.key(0), (4,)) * 4.0, b=jnp.float32(-0.5))
 
 
-def host_returns(renderer, conditions, **render):
+def host_returns(renderer, conditions, opts=OPTS, **render):
   """Each condition's returns from `dmcr_jax.make` envs stepped from the host: one
   static env swept over the static conditions, one env per moving condition."""
-  seeds = np.repeat(P.held_out_seeds(OPTS["visual_seeds"], OPTS["seed"]),
-                    OPTS["dynamics_seeds"])
-  resets = P.reset_seeds(seeds.size, OPTS["seed"])
+  seeds = np.repeat(P.held_out_seeds(opts["visual_seeds"], opts["seed"]),
+                    opts["dynamics_seeds"])
+  resets = P.reset_seeds(seeds.size, opts["seed"])
   act = jax.jit(lambda obs: policy(PARAMS, obs, None))
   make = lambda **kw: dmcr_jax.make(
-      TASK, num_envs=seeds.size, visual_seeds=seeds, frame_skip=OPTS["action_repeat"],
-      image_size=OPTS["image_size"], seed=OPTS["seed"], renderer=renderer, **render, **kw)
+      TASK, num_envs=seeds.size, visual_seeds=seeds, frame_skip=opts["action_repeat"],
+      image_size=opts["image_size"], seed=opts["seed"], renderer=renderer, **render, **kw)
 
   run = lambda env: host_episode_returns(env, act, resets)
 
@@ -98,12 +98,14 @@ def test_moving_conditions_return_what_the_host_stepped_moving_env_returns():
 
 @pytest.mark.slow
 def test_the_pool_runs_moving_conditions_as_the_host_stepped_moving_pool_env():
-  # A block of two motions: two pool envs of 4 envs each, as the host's.
+  # A block of two motions: two pool envs of 8 envs each (2 looks × 4 initial states),
+  # as the host's.
   conditions = ("none", "moving-camera@0.5")
   render = dict(quality="fastest", workers=1)
+  opts = {**OPTS, "dynamics_seeds": 4}
   result = P.evaluate(TASK, policy, PARAMS, renderer="pool", conditions=conditions,
-                      **render, **OPTS)
-  check_equal(result, host_returns("pool", conditions, **render))
+                      **render, **opts)
+  check_equal(result, host_returns("pool", conditions, opts, **render))
 
 
 def test_moving_intensities_add_every_factor_and_all_at_each_intensity():
