@@ -15,6 +15,7 @@ import pytest
 
 from dmcr_jax.train import curl, loop, sac, sac_ae
 from dmcr_jax.train.networks import Decoder, center_crop, encoder_sides
+from tests.compile_options import run_faster
 
 pytestmark = pytest.mark.xdist_group("aux_losses")
 
@@ -231,7 +232,8 @@ def test_learns_to_read_a_pixel_cue(algo):
     return sac.Batch(obs=obs, action=action, reward=jnp.where(right, 1.0, -1.0) * action[:, 0],
                      discount=jnp.zeros((64,)), next_obs=obs)
 
-  @jax.jit
+  # Its run, not its compilation, dominates: compiled with LLVM's optimisations.
+  @functools.partial(jax.jit, compiler_options=run_faster())
   def train(agent, key):
     def body(agent, k):
       k_batch, k_update = jax.random.split(k)

@@ -20,6 +20,7 @@ from dmcr_jax import augment
 from dmcr_jax.train import losses, sac
 from dmcr_jax.train.networks import (Actor, squash_log_std, tanh_gaussian_log_prob,
                             tanh_gaussian_sample)
+from tests.compile_options import run_faster
 
 pytestmark = pytest.mark.xdist_group("sac")
 
@@ -458,7 +459,8 @@ def test_learns_to_read_a_pixel_cue():
     return sac.Batch(obs=obs, action=action, reward=reward,
                      discount=jnp.zeros((64,)), next_obs=obs)
 
-  @jax.jit
+  # Its run, not its compilation, dominates: compiled with LLVM's optimisations.
+  @functools.partial(jax.jit, compiler_options=run_faster())
   def train(agent, key):
     def body(agent, k):
       k_batch, k_update = jax.random.split(k)
