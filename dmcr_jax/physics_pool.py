@@ -11,8 +11,8 @@ The constructor returns once the workers are launched (the first call waits for
 their start). Each worker compiles its `init` and `step` in a background thread as
 soon as it has started, for its slice's size and the seed argument's kind the env
 starts with, so that the start and the compilation overlap whatever the training
-process does before its first physics call instead of following it. The workers share a persistent
-compilation cache (JAX's, the folder this process's JAX config or
+process does before its first physics call instead of following it. The workers
+share a persistent compilation cache (JAX's, the folder this process's JAX config or
 `JAX_COMPILATION_CACHE_DIR` names, with this process's size bound and minimum
 compile time, e.g. a CLI's `--compile-cache`; else a folder of the pool's own):
 worker 0 compiles first and the others then load what it compiled, instead of W
