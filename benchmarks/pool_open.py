@@ -48,12 +48,7 @@ def time_open(task: str, visual_seeds: int, train_episodes: int, image_size: int
     with protocol_pool.pool_envs(proto) as penvs:
       open_s = time.perf_counter() - t0
       inputs = proto._block_inputs(next(iter(proto.block_slices())))
-      varies = [proto.plan.varies[i] for i in inputs["vary_index"]]
-      groups = protocol_pool.block_groups(1, inputs["motion_index"][:proto.block])
-      envs = [penvs.envs[e] for e in protocol_pool._env_keys(groups)]
-      for env, (_, rows, _) in zip(envs, groups):
-        env.set_looks(inputs["seeds"][rows], [varies[i] for i in rows])
-        env.reset(seed=inputs["resets"][rows])
+      _, groups, _, _ = protocol_pool.reset_block(proto, penvs, inputs)
       first_reset_s = time.perf_counter() - t0
   finally:
     worker_pool.WorkerPool.__init__ = init

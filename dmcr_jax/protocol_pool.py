@@ -271,10 +271,37 @@ def pool_envs(proto):
                    np.asarray(first.single_action_space.high, np.float32))
 
 
+def reset_block(proto, penvs: PoolEnvs, inputs: dict):
+  """A pool block's start on the open `penvs`: its envs as `block_groups` groups, each
+  group's looks set (a moving condition's with `set_visuals`) and its envs reset.
+
+  Args:
+    proto: the `protocol.Protocol` whose `pool_envs` `penvs` are.
+    penvs: its open `PoolEnvs`.
+    inputs: the block's inputs (`Protocol._block_inputs`).
+
+  Returns:
+    (envs, groups, obs, index): per group its pool env, its `block_groups` entry,
+    its first observations and its episodes' indices (int32 arrays).
+  """
+  plan = proto.plan
+  varies = [plan.varies[i] for i in inputs["vary_index"]]
+  groups = block_groups(proto.agents or 1, inputs["motion_index"][:proto.block])
+  envs = [penvs.envs[e] for e in _env_keys(groups)]
+  index, obs = [], []
+  for env, (m, rows, _) in zip(envs, groups):
+    if plan.motions[m][0]:    # a moving condition's looks: all of one vary
+      env.set_visuals(inputs["seeds"][rows], vary=varies[rows[0]])
+    else:
+      env.set_looks(inputs["seeds"][rows], [varies[i] for i in rows])
+    obs.append(env.reset(seed=inputs["resets"][rows])[0])
+    index.append(jnp.asarray(inputs["index"][rows]))
+  return envs, groups, obs, index
+
+
 def block_runner(proto, penvs: PoolEnvs, params, key):
-  """`run_block(inputs) -> returns (K·B,)` on the open `penvs`: the block's envs as
-  `block_groups` groups, each group's looks set and envs reset, then stepped by
-  `run_pipelined` for one episode.
+  """`run_block(inputs) -> returns (K·B,)` on the open `penvs`: the block's groups
+  started by `reset_block`, then stepped by `run_pipelined` for one episode.
 
   Args:
     proto: the `protocol.Protocol` whose `pool_envs` `penvs` are.
@@ -282,7 +309,6 @@ def block_runner(proto, penvs: PoolEnvs, params, key):
     params: the policy's params (leading axis K when `proto.agents` is K).
     key: the pass's policy key.
   """
-  k, plan = proto.agents or 1, proto.plan
   low, high = penvs.low, penvs.high
 
   def act(env, obs, index, t):
@@ -292,17 +318,7 @@ def block_runner(proto, penvs: PoolEnvs, params, key):
     env.step_async(np.asarray(actions))
 
   def run_block(inputs):
-    varies = [plan.varies[i] for i in inputs["vary_index"]]
-    groups = block_groups(k, inputs["motion_index"][:proto.block])
-    block_envs = [penvs.envs[e] for e in _env_keys(groups)]
-    index, obs = [], []
-    for env, (m, rows, _) in zip(block_envs, groups):
-      if plan.motions[m][0]:    # a moving condition's looks: all of one vary
-        env.set_visuals(inputs["seeds"][rows], vary=varies[rows[0]])
-      else:
-        env.set_looks(inputs["seeds"][rows], [varies[i] for i in rows])
-      obs.append(env.reset(seed=inputs["resets"][rows])[0])
-      index.append(jnp.asarray(inputs["index"][rows]))
+    block_envs, groups, obs, index = reset_block(proto, penvs, inputs)
     last = run_pipelined(block_envs, obs, index, act, proto.episode_length)
     out = np.empty(len(inputs["index"]), np.float64)
     for (truncated, info), (_, rows, real) in zip(last, groups):
