@@ -3,6 +3,7 @@ expansion into runs with stable folders, a tiny sweep of two runs trained, evalu
 and merged into the paper table's rows, skipped on a rerun, and the same spec as
 Ray tasks on a local instance."""
 
+import glob
 import json
 import os
 import shutil
@@ -118,6 +119,17 @@ steps = 2000
   assert lines[0].startswith("cartpole-balance-drq-s0_1_2-v0 [new]: dmcr-train --task "
                              "cartpole-balance --seeds 0,1,2 --visual-seeds 0 --steps 1000")
   assert lines[-1] == f"8 runs in {out}" and not os.path.exists(out)
+
+
+SPECS = sorted(glob.glob(os.path.join(os.path.dirname(os.path.dirname(__file__)),
+                                      "benchmarks", "sweeps", "*.toml")))
+
+
+@pytest.mark.parametrize("path", SPECS, ids=os.path.basename)
+def test_the_committed_specs_plan_as_dmcr_train_parses_them(path, tmp_path):
+  out, runs = sw.plan(sw.load(path), str(tmp_path / "sweep"))
+  assert runs and all(r.state() == "new" for r in runs)
+  assert all(sw.parse_train(r).task == r.task for r in runs)
 
 
 def test_only_runs_the_runs_it_names_and_refuses_a_pattern_of_none(tmp_path, monkeypatch,

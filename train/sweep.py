@@ -45,8 +45,11 @@ every done run are merged into `<sweep>/table.md` (and `table.json`) by
 table per training look; per task whose runs differ in training looks, the runs'
 few-shot curve (`dmcr_jax.benchmarks.few_shot`: test return and E_G against the number
 of training looks, mean and min–max over every seed) goes to
-`<sweep>/few_shot_<task>.md`, `.json` and `.png`; `<sweep>/runs.json` lists each run's
-folder and state.
+`<sweep>/few_shot_<task>.md`, `.json` and `.png`; per task whose runs were evaluated
+during training (`--eval-every` in `[train]`) and differ in looks or augmentation, their
+curves drawn together (`dmcr_jax.benchmarks.eval_curves`: held-out return against
+training steps) go to `<sweep>/eval_curves_<task>.md`, `.json` and `.png`;
+`<sweep>/runs.json` lists each run's folder and state.
 
     dmcr-sweep sweep.toml --dry-run     # the runs and what each still needs
     dmcr-sweep sweep.toml               # one after another, here
@@ -421,6 +424,25 @@ def few_shot_curves(out: str, runs: list[Run]) -> list[str]:
   return written
 
 
+def eval_curves(out: str, runs: list[Run]) -> list[str]:
+  """`<out>/eval_curves_<task>.md`, `.json` and `.png` from the runs that hold an
+  eval_curve.csv (`dmcr_jax.benchmarks.eval_curves.curves`); the Markdown paths
+  written. Runs whose curves cannot be drawn together are reported on stderr and
+  skipped."""
+  from dmcr_jax.benchmarks import eval_curves as curves_of_runs
+  from dmcr_jax.train import eval_curve
+  with_curves = [r.out_dir for r in runs
+                 if os.path.exists(os.path.join(r.out_dir, eval_curve.CSV))]
+  if not with_curves:
+    return []
+  try:
+    drawn = curves_of_runs.curves(with_curves, out)
+  except ValueError as e:
+    print(f"sweep: eval curves not drawn together: {e}", file=sys.stderr, flush=True)
+    return []
+  return [os.path.join(out, f"eval_curves_{t}.md") for t in drawn]
+
+
 def _run_with_cache(run: Run, cache: str | None, off: bool) -> dict:
   """`run_one` in a Ray worker, with the sweep's compilation cache: `--compile-cache`
   as given (None: the node's own default folder, `compile_cache.default_dir`), or
@@ -486,8 +508,9 @@ def sweep(out: str, runs: list[Run], backend: str = "local", cpus: int = 1,
           cache: tuple | None = None, only: set[str] | None = None) -> dict:
   """Brings every run (those named in `only`, when given) to "done" (`run_one`;
   "done" ones are skipped), then merges the evaluations of all done runs (`merge`)
-  and draws the few-shot curves (`few_shot_curves`); {"runs": each result, "table":
-  the Markdown or None, "few_shot": the curves' Markdown paths}. `<out>/runs.json`
+  and draws the few-shot curves (`few_shot_curves`) and the runs' eval curves
+  (`eval_curves`); {"runs": each result, "table": the Markdown or None, "few_shot"
+  and "eval_curves": the curves' Markdown paths}. `<out>/runs.json`
   records them. `cache`: (`--compile-cache`, `--no-compile-cache`) as given, which
   each Ray task applies on its node (None: the tasks keep their processes' cache;
   local runs use this process's, which `main` sets)."""
@@ -510,12 +533,13 @@ def sweep(out: str, runs: list[Run], backend: str = "local", cpus: int = 1,
     print(f"sweep: {result['name']}: {what}", file=sys.stderr, flush=True)
   table = merge(out, runs)
   curves = few_shot_curves(out, runs)
+  during = eval_curves(out, runs)
   listing = [dict(name=r.name, out_dir=r.out_dir, **{k: v for k, v in
                                                      results.get(r.name, {}).items()
                                                      if k != "name"}) for r in runs]
   with open(os.path.join(out, "runs.json"), "w") as f:
     json.dump(listing, f, indent=1)
-  return dict(runs=listing, table=table, few_shot=curves)
+  return dict(runs=listing, table=table, few_shot=curves, eval_curves=during)
 
 
 def main(argv=None) -> None:
@@ -565,6 +589,11 @@ def main(argv=None) -> None:
       print(f"few-shot curve of {task} over looks {', '.join(looks)}: "
             f"{os.path.join(out, f'few_shot_{task}')}.md, .json and .png, once its runs "
             "are evaluated")
+    for task in dict.fromkeys(r.task for r in runs):
+      evaluated = [r for r in runs if r.task == task and "--eval-every" in r.train_argv]
+      if len(evaluated) > 1:
+        print(f"eval curves of {task}'s {len(evaluated)} runs evaluated during training: "
+              f"{os.path.join(out, f'eval_curves_{task}')}.md, .json and .png, when the sweep ends")
     print(f"{len(runs)} runs in {out}" if only is None else
           f"{len(only)} of {len(runs)} runs in {out} (--only)")
     return
@@ -573,7 +602,7 @@ def main(argv=None) -> None:
   if result["table"]:
     print(result["table"], end="")
     print(f"wrote {os.path.join(out, 'table.md')} and table.json")
-  for path in result["few_shot"]:
+  for path in result["few_shot"] + result["eval_curves"]:
     print(f"wrote {os.path.splitext(path)[0]}.md, .json and .png")
   bad = [r["name"] for r in result["runs"] if "error" in r or r.get("interrupted")]
   if bad:
