@@ -139,17 +139,12 @@ def markdown(task: str, groups: list[dict]) -> str:
 
 def plot(task: str, groups: list[dict], png_path: str) -> None:
   """One panel per series (train, then each condition), one line per group."""
-  import matplotlib
-  matplotlib.use("Agg")
   import matplotlib.pyplot as plt
   panels = list(groups[0]["series"])
-  cols = min(len(panels), 4)
-  rows = -(-len(panels) // cols)
-  fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.2 * rows), squeeze=False,
-                           sharey=True)
+  fig, axes = eval_curve.step_panels(len(panels), cols=4)
   augs = list(dict.fromkeys(g["aug"] for g in groups))
   colours = plt.get_cmap("viridis")(np.linspace(0, 0.9, max(len(groups), 1)))
-  for ax, panel in zip(axes.flat, panels):
+  for ax, panel in zip(axes, panels):
     for g, colour in zip(groups, colours):
       s = g["series"][panel]
       style = ["-", "--", ":", "-."][augs.index(g["aug"]) % 4]
@@ -158,14 +153,7 @@ def plot(task: str, groups: list[dict], png_path: str) -> None:
       if len(g["seeds"]) > 1:
         ax.fill_between(g["steps"], s["min"], s["max"], color=colour, alpha=0.15, lw=0)
     ax.set_title(f"{task}: {panel}" + (" (own looks)" if panel == TRAIN else ""), fontsize=9)
-    ax.set_xlabel("training step (transitions per agent)")
-    ax.set_ylabel("mean return")
-  for ax in list(axes.flat)[len(panels):]:
-    ax.axis("off")
-  axes.flat[0].legend(fontsize=7)
-  fig.tight_layout()
-  fig.savefig(png_path, dpi=100)
-  plt.close(fig)
+  eval_curve.save_panels(fig, axes, png_path)
 
 
 def curves(run_dirs: list[str], out_dir: str) -> dict[str, list[dict]]:

@@ -162,6 +162,33 @@ class EvalCurve:
     self.close()
 
 
+def step_panels(count: int, cols: int):
+  """(figure, the first `count` axes) of a grid of panels of return against training
+  step, at most `cols` wide, sharing their y axis; `save_panels` finishes it."""
+  import matplotlib
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt
+  cols = min(count, cols)
+  rows = -(-count // cols)
+  fig, axes = plt.subplots(rows, cols, figsize=(4.4 * cols, 3.2 * rows), squeeze=False,
+                           sharey=True)
+  for ax in list(axes.flat)[count:]:
+    ax.axis("off")
+  for ax in list(axes.flat)[:count]:
+    ax.set_xlabel("training step (transitions per agent)")
+    ax.set_ylabel("mean return")
+  return fig, list(axes.flat)[:count]
+
+
+def save_panels(fig, axes, png_path: str) -> None:
+  """Writes a `step_panels` figure to `png_path` (the legend in its first panel)."""
+  import matplotlib.pyplot as plt
+  axes[0].legend(fontsize=7)
+  fig.tight_layout()
+  fig.savefig(png_path, dpi=100)
+  plt.close(fig)
+
+
 def plot(csv_path: str, png_path: str) -> bool:
   """eval_curve.png from eval_curve.csv: one panel per agent, the mean return of
   each condition (and the train return, dashed) against the training step.
@@ -173,16 +200,10 @@ def plot(csv_path: str, png_path: str) -> bool:
     data = list(csv.DictReader(f))
   if not data:
     return False
-  import matplotlib
-  matplotlib.use("Agg")
-  import matplotlib.pyplot as plt
   agents = sorted({int(r["agent"]) for r in data})
   conditions = list(dict.fromkeys(r["condition"] for r in data))
-  cols = min(len(agents), 3)
-  nrows = -(-len(agents) // cols)
-  fig, axes = plt.subplots(nrows, cols, figsize=(4.5 * cols, 3.2 * nrows), squeeze=False,
-                           sharey=True)
-  for ax, a in zip(axes.flat, agents):
+  fig, axes = step_panels(len(agents), cols=3)
+  for ax, a in zip(axes, agents):
     mine = [r for r in data if int(r["agent"]) == a]
     for c in conditions:
       pts = sorted((int(r["step"]), float(r["mean_return"])) for r in mine
@@ -191,12 +212,5 @@ def plot(csv_path: str, png_path: str) -> bool:
     train = sorted({(int(r["step"]), float(r["train_return"])) for r in mine})
     ax.plot(*zip(*train), "k--", marker="s", ms=3, label="train")
     ax.set_title(mine[0]["label"], fontsize=9)
-    ax.set_xlabel("training step (transitions per agent)")
-    ax.set_ylabel("mean return")
-  for ax in list(axes.flat)[len(agents):]:
-    ax.axis("off")
-  axes.flat[0].legend(fontsize=7)
-  fig.tight_layout()
-  fig.savefig(png_path, dpi=100)
-  plt.close(fig)
+  save_panels(fig, axes, png_path)
   return True
