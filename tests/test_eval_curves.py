@@ -104,7 +104,7 @@ def test_other_protocols_a_seed_twice_or_no_curve_are_refused_naming_why(tmp_pat
     eval_curves.curves([a, b], out)
   # The sweep says so on stderr and goes on without the picture.
   assert sw.eval_curves(out, runs) == []
-  assert "eval curves not drawn together" in capsys.readouterr().err
+  assert "eval curves of pendulum-swingup not drawn together" in capsys.readouterr().err
   config.save_config(cfg, b)
   with open(os.path.join(b, eval_curve.CSV)) as f:
     rows = [r for r in csv.DictReader(f) if r["condition"] == "all"]

@@ -426,21 +426,25 @@ def few_shot_curves(out: str, runs: list[Run]) -> list[str]:
 
 def eval_curves(out: str, runs: list[Run]) -> list[str]:
   """`<out>/eval_curves_<task>.md`, `.json` and `.png` from the runs that hold an
-  eval_curve.csv (`dmcr_jax.benchmarks.eval_curves.curves`); the Markdown paths
-  written. Runs whose curves cannot be drawn together are reported on stderr and
-  skipped."""
+  eval_curve.csv (`dmcr_jax.benchmarks.eval_curves.curves`), task by task; the
+  Markdown paths written. A task whose runs' curves cannot be drawn together is
+  reported on stderr and skipped."""
   from dmcr_jax.benchmarks import eval_curves as curves_of_runs
   from dmcr_jax.train import eval_curve
-  with_curves = [r.out_dir for r in runs
-                 if os.path.exists(os.path.join(r.out_dir, eval_curve.CSV))]
-  if not with_curves:
-    return []
-  try:
-    drawn = curves_of_runs.curves(with_curves, out)
-  except ValueError as e:
-    print(f"sweep: eval curves not drawn together: {e}", file=sys.stderr, flush=True)
-    return []
-  return [os.path.join(out, f"eval_curves_{t}.md") for t in drawn]
+  written = []
+  for task in dict.fromkeys(r.task for r in runs):
+    with_curves = [r.out_dir for r in runs if r.task == task
+                   and os.path.exists(os.path.join(r.out_dir, eval_curve.CSV))]
+    if not with_curves:
+      continue
+    try:
+      drawn = curves_of_runs.curves(with_curves, out)
+    except ValueError as e:
+      print(f"sweep: eval curves of {task} not drawn together: {e}", file=sys.stderr,
+            flush=True)
+      continue
+    written += [os.path.join(out, f"eval_curves_{t}.md") for t in drawn]
+  return written
 
 
 def _run_with_cache(run: Run, cache: str | None, off: bool) -> dict:
