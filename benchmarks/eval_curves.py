@@ -98,14 +98,15 @@ def group_series(runs: list[tuple[str, config.TrainConfig, list[dict]]]) -> list
           values[(step, r["condition"])] = float(r["mean_return"])
           values[(step, TRAIN)] = float(r["train_return"])
       group["seeds"][seed] = values
-  panels = [TRAIN] + list(conditions or [])
+  panels = [TRAIN] + conditions
   out = []
-  for (aug, looks), group in sorted(members.items(), key=lambda kv: (kv[0][0], kv[1]["num_looks"])):
+  order = lambda kv: (kv[0][0], kv[1]["num_looks"])
+  for (aug, looks), group in sorted(members.items(), key=order):
     per_seed = list(group["seeds"].values())
     steps = sorted(set.intersection(*({s for s, _ in v} for v in per_seed)))
     series = {}
     for panel in panels:
-      table = np.array([[v[(s, panel)] for s in steps] for v in per_seed]).reshape(len(per_seed), -1)
+      table = np.array([[v[(s, panel)] for s in steps] for v in per_seed])
       series[panel] = dict(mean=table.mean(0).tolist(), min=table.min(0).tolist(),
                            max=table.max(0).tolist())
     out.append(dict(aug=aug, looks=looks, num_looks=group["num_looks"],

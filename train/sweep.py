@@ -594,7 +594,7 @@ def main(argv=None) -> None:
             f"{os.path.join(out, f'few_shot_{task}')}.md, .json and .png, once its runs "
             "are evaluated")
     for task in dict.fromkeys(r.task for r in runs):
-      evaluated = [r for r in runs if r.task == task and "--eval-every" in r.train_argv]
+      evaluated = [r for r in runs if r.task == task and parse_train(r).eval_every]
       if len(evaluated) > 1:
         print(f"eval curves of {task}'s {len(evaluated)} runs evaluated during training: "
               f"{os.path.join(out, f'eval_curves_{task}')}.md, .json and .png, when the sweep ends")
