@@ -5,7 +5,8 @@ pipelined halves of `pool_groups`, or one group per motion where the block holds
 moving conditions), each a `dmcr_jax.make` pool env (made with the group's
 `moving` and `intensity`) drawn by one shared `RenderPool`'s workers; `run_pipelined`
 steps them round robin, so that one group's physics and policy (`_pool_act`, the
-jitted policy call) run while the workers draw another's frames. `pool_envs` opens a
+jitted policy call) run while the workers draw another's frames, each group's
+frames queued behind the others' so that the workers never wait for the host. `pool_envs` opens a
 pass's envs and workers (once per pass, or once for every pass inside a `with` block
 of the `Protocol`), `block_runner` runs its blocks on them (`Protocol._pool_runner`).
 Returns are those of `dmcr_jax.make`'s env stepped by the same policy.
@@ -112,14 +113,17 @@ def pool_groups(agents: int, block: int, groups: int = POOL_GROUPS
 
 
 def run_pipelined(envs, obs, index, act, steps: int) -> list[tuple[np.ndarray, dict]]:
-  """Steps pool envs `steps` agent steps each, round robin, so that while the
-  workers draw one env's frames another env's policy and physics run: env h's
-  frames are collected (`step_wait`), env h+1's submitted (`step_submit`), then
-  h's policy and physics dispatched (`act`). Each env's episode is what
-  `env.step` in a loop gives.
+  """Steps pool envs `steps` agent steps each, round robin, so that the workers
+  draw one env's frames while another env's policy and physics run: env h's
+  frames are collected (`step_wait`), its policy and physics dispatched (`act`),
+  and its next frames handed to the workers (`step_submit`, once its physics is
+  done) behind the other envs' frames in flight, so the workers go from one env's
+  frames straight to the next one's. Each env's episode is what `env.step` in a
+  loop gives.
 
   Args:
-    envs: `dmcr_jax.env.PixelVectorEnv`s, just reset.
+    envs: `dmcr_jax.env.PixelVectorEnv`s, just reset, whose render pools are row
+      views of one pool (or pools of their own).
     obs: their first observations.
     index: their envs' episode indices (int32 arrays).
     act: `act(env, obs, index, t)` steps `env.step_async` with the policy's actions.
@@ -128,23 +132,18 @@ def run_pipelined(envs, obs, index, act, steps: int) -> list[tuple[np.ndarray, d
   Returns:
     Per env its last step's (truncated, info).
   """
-  g, last = len(envs), [None] * len(envs)
-  for h in range(g):
-    act(envs[h], obs[h], index[h], 0)
-  envs[0].step_submit()
-  for t in range(steps):
-    final = t + 1 == steps
-    for h in range(g):
-      o, _, _, truncated, info = envs[h].step_wait()
-      nxt = (h + 1) % g
-      if nxt != h and not (final and nxt == 0):
-        envs[nxt].step_submit()
-      if final:
+  last = [None] * len(envs)
+  for h, env in enumerate(envs):
+    act(env, obs[h], index[h], 0)
+    env.step_submit()
+  for t in range(1, steps + 1):
+    for h, env in enumerate(envs):
+      o, _, _, truncated, info = env.step_wait()
+      if t == steps:
         last[h] = (truncated, info)
         continue
-      act(envs[h], o, index[h], t + 1)
-      if nxt == h:
-        envs[h].step_submit()
+      act(env, o, index[h], t)
+      env.step_submit()
   return last
 
 

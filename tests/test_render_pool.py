@@ -178,8 +178,9 @@ def test_frame_stacks_built_in_the_workers_survive_a_killed_worker(pool):
 
 
 def test_row_views_share_the_workers_and_keep_their_own_stacks(pool):
-  # Two envs' rows drawn in turn by one pool's workers (`RenderPool.rows`): each
-  # view's stacks continue its own previous frames, not the other view's call.
+  # Two envs' rows drawn by one pool's workers (`RenderPool.rows`), both calls in
+  # flight together and collected in either order: each view's stacks continue its
+  # own previous frames, not the other view's call.
   with RenderPool("reacher-easy", max_batch=6, workers=2, frame_stack=2) as stacked:
     views, want = [stacked.rows(0, 3), stacked.rows(3, 6)], [None, None]
     for t in range(3):
@@ -188,9 +189,10 @@ def test_row_views_share_the_workers_and_keep_their_own_stacks(pool):
         f = pool.render(*c)
         view.submit(*c, restart=None if t == 0 else np.zeros(3, bool))
         with pytest.raises(RuntimeError, match="twice"):
-          views[1 - v].submit(*c)
+          view.pool.submit(*_inputs(pool.rm, 6, seed=1))   # rows of a call in flight
         want[v] = np.concatenate([f, f] if t == 0 else [want[v][..., 3:], f], axis=-1)
-        np.testing.assert_array_equal(view.collect(), want[v])
+      for v in ((1, 0), (0, 1))[t % 2]:
+        np.testing.assert_array_equal(views[v].collect(), want[v])
     with pytest.raises(ValueError, match="inside"):
       stacked.rows(4, 7)
 

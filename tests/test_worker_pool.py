@@ -262,6 +262,48 @@ def test_submit_returns_before_wait_and_wait_completes_the_call(tmp_path):
     np.testing.assert_array_equal(pool.run(n), expected(n))  # the pool is usable again
 
 
+def test_calls_on_disjoint_rows_queue_and_each_is_collected_by_its_rows(tmp_path):
+  with make_pool(tmp_path, workers=2)[0] as pool:
+    fill(pool, 20)
+    pool.submit(8)             # rows [0, 8)
+    pool.submit(12, start=8)   # rows [8, 20), behind it
+    with pytest.raises(RuntimeError, match="called twice on rows in flight"):
+      pool.submit(4, start=6)
+    with pytest.raises(RuntimeError, match="without a submitted call of rows from 3"):
+      pool.wait(3)
+    np.testing.assert_array_equal(pool.wait(8), expected(20)[8:])  # the later call first
+    assert pool.busy
+    np.testing.assert_array_equal(pool.wait(), expected(8))
+    assert not pool.busy
+    fill(pool, 20)
+    np.testing.assert_array_equal(pool.run(20), expected(20))
+
+
+@pytest.mark.parametrize("row", [7, 17])   # worker 1's slice of the first / second call
+def test_a_worker_killed_with_calls_queued_redoes_each_of_its_slices(tmp_path, row):
+  with make_pool(tmp_path, workers=2)[0] as pool:
+    arm(pool, tmp_path, 20, row, fx.KILL)
+    old = pool.pids
+    pool.submit(10)
+    pool.submit(10, start=10)
+    np.testing.assert_array_equal(pool.wait(), expected(10))
+    np.testing.assert_array_equal(pool.wait(10), expected(20)[10:])
+    assert pool.restarts == 1 and pool.pids[0] == old[0] and not alive(old[1])
+
+
+def test_a_worker_raising_with_calls_queued_drops_them_and_the_pool_goes_on(tmp_path):
+  with make_pool(tmp_path, workers=2)[0] as pool:
+    fill(pool, 20)
+    pool.inputs["mode"][3] = fx.RAISE
+    pool.submit(10)
+    pool.submit(10, start=10)
+    with pytest.raises(WorkerError, match="bad env value 30"):
+      pool.wait(10)
+    assert not pool.busy and pool.restarts == 0
+    fill(pool, 20)
+    np.testing.assert_array_equal(pool.run(20), expected(20))
+
+
 def test_a_pool_not_waiting_for_its_start_returns_at_once_and_its_first_call_waits(tmp_path):
   gate = tmp_path / "gate"
   # Were the start awaited here, the constructor would wait for the gate until the

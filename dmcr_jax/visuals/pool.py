@@ -41,7 +41,10 @@ same result — this is how frame stacks are built in the workers, and how the
 physics workers keep their envs' state (each call steps `prev`'s state into `out`).
 
 A call is `run(batch)`, or `submit(batch)` (returns at once) and later `wait()`,
-so that the caller can work while the workers do.
+so that the caller can work while the workers do. Calls on disjoint rows
+(`submit(batch, start)`) may be in flight together: each worker takes its slices
+in the order they were submitted, so the workers go from one call's rows straight
+to the next one's while the caller collects the first (`wait(start)`).
 """
 
 from __future__ import annotations
@@ -299,6 +302,23 @@ def slice_bounds(batch: int, workers: int) -> list[tuple[int, int]]:
   return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
+@dataclasses.dataclass
+class _Call:
+  """A submitted call: its id, rows [start, start + batch), output buffer `cur`,
+  each worker's slice (`slices`), the slices not yet done (`pending`), and whether
+  every slice is done (`done`: completed, not yet collected by `wait`)."""
+  id: int
+  start: int
+  batch: int
+  cur: int
+  slices: dict
+  pending: dict
+  done: bool = False
+
+  def overlaps(self, start: int, batch: int) -> bool:
+    return start < self.start + self.batch and self.start < start + batch
+
+
 class WorkerPool:
   """W processes rendering fixed slices of a batch into shared memory.
 
@@ -367,7 +387,7 @@ class WorkerPool:
     self._procs: list[Any] = [None] * self.num_workers
     self._conns: list[Any] = [None] * self.num_workers
     self._call_id = 0
-    self._pending = None
+    self._calls: list[_Call] = []    # submitted and not yet collected, oldest first
     self.kind = kind
     self.restarts = 0
     self._closed = False
@@ -515,11 +535,11 @@ class WorkerPool:
   @property
   def busy(self) -> bool:
     """Whether a `submit` awaits its `wait`."""
-    return self._pending is not None
+    return bool(self._calls)
 
   @property
   def output(self) -> np.ndarray | None:
-    """The output array of the current call (None once closed)."""
+    """The output array of the latest call (None once closed)."""
     return self._outputs[self._cur] if self._outputs else None
 
   # Calls -------------------------------------------------------------------------
@@ -539,40 +559,82 @@ class WorkerPool:
     self.submit(batch)
     return self.wait()
 
-  def submit(self, batch: int, start: int = 0) -> None:
-    """Sends every worker its slice of envs [start, start + batch) and returns at
-    once; `wait` completes the call. `self.inputs` must not change in between.
-    With two buffers, the call writes its rows into the buffer that does not hold
-    their previous output (its `prev`): calls over disjoint rows (envs that share
-    the workers, `start` apart) each keep their own rows' stacks."""
+  def check_free(self, batch: int, start: int = 0) -> None:
+    """Raises unless envs [start, start + batch) lie in the batch and no call in
+    flight (submitted, not yet collected by `wait`) holds any of them: their inputs
+    may then be written for a `submit`.
+
+    Raises:
+      RuntimeError: after `close`, or rows of a call in flight.
+      ValueError: rows outside [0, max_batch).
+    """
     if self._closed:
       raise RuntimeError("the pool is closed")
-    if self._pending is not None:
-      raise RuntimeError("submit() called twice: call wait() first")
     if not 0 <= start < self.max_batch:
       raise ValueError(f"start must be in [0, {self.max_batch}), got {start}")
     if not 1 <= batch <= self.max_batch - start:
       raise ValueError(f"batch must be in [1, {self.max_batch - start}], got {batch}")
+    for call in self._calls:
+      if call.overlaps(start, batch):
+        raise RuntimeError(
+            f"submit() called twice on rows in flight: [{start}, {start + batch}) overlaps "
+            f"the call of rows [{call.start}, {call.start + call.batch}); call wait() first")
+
+  def submit(self, batch: int, start: int = 0) -> None:
+    """Sends every worker its slice of envs [start, start + batch) and returns at
+    once; `wait` completes the call. Those rows of `self.inputs` must not change
+    until then. Calls on disjoint rows may be in flight together: the workers take
+    them in order, each one's slice of a call after its slice of the one before.
+    With two buffers, the call writes its rows into the buffer that does not hold
+    their previous output (its `prev`): calls over disjoint rows (envs that share
+    the workers, `start` apart) each keep their own rows' stacks.
+
+    Raises:
+      RuntimeError: rows of a call in flight (`check_free`), or after `close`.
+      ValueError: rows outside [0, max_batch).
+    """
+    self.check_free(batch, start)
     self._await_starts()
     self._call_id += 1
     self._cur = 0 if len(self._outputs) == 1 else 1 - int(self._latest[start])
     self._latest[start:start + batch] = self._cur
-    pending = {w: (a + start, b + start) for w, (a, b) in enumerate(self.slices(batch))
-               if b > a}
-    for w, (a, b) in pending.items():
-      self._send(w, a, b)
-    self._pending = (start, batch, pending)
+    slices = {w: (a + start, b + start) for w, (a, b) in enumerate(self.slices(batch))
+              if b > a}
+    call = _Call(self._call_id, start, batch, self._cur, slices, dict(slices))
+    for w in slices:
+      self._send(w, call)
+    self._calls.append(call)
 
-  def wait(self) -> np.ndarray:
-    """Waits for the call `submit` began (replacing dead or hung workers and
-    resending their slices); returns `run`'s view of the output rows.
+  def wait(self, start: int | None = None) -> np.ndarray:
+    """Waits for a call `submit` began — the oldest in flight, or the one of rows
+    from `start` — and for every call submitted before it (replacing dead or hung
+    workers and resending their slices); returns `run`'s view of its output rows.
+    Calls completed on the way stay for their own `wait`.
 
     Raises:
-      WorkerError: a worker raised, or failed more than `max_retries` times.
+      RuntimeError: no such call in flight.
+      WorkerError: a worker raised, or failed more than `max_retries` times (every
+        call in flight is then dropped).
     """
-    if self._pending is None:
+    if not self._calls:
       raise RuntimeError("wait() without a submitted call")
-    (start, batch, pending), self._pending = self._pending, None
+    if start is None:
+      call = self._calls[0]
+    else:
+      call = next((c for c in self._calls if c.start == start), None)
+      if call is None:
+        raise RuntimeError(f"wait({start}) without a submitted call of rows from {start}")
+    for c in self._calls[:self._calls.index(call) + 1]:
+      if not c.done:
+        self._complete(c)
+    self._calls.remove(call)
+    return self._outputs[call.cur][call.start:call.start + call.batch]
+
+  def _complete(self, call: _Call) -> None:
+    """Waits until every worker has done its slice of `call` (every earlier call
+    complete): replaces dead or hung workers, resending their slices of this and
+    every later call in flight."""
+    pending = call.pending
     tries = {w: 0 for w in pending}
     began = dict.fromkeys(pending, time.monotonic())   # the slice was (re)sent
     beat = dict(began)                                 # the worker's last sign of life
@@ -590,7 +652,7 @@ class WorkerPool:
           why = f"still busy after {now - began[w]:.0f} s"
         else:
           continue
-        self._retry(w, pending, tries, why)  # hung: replace and resend
+        self._retry(w, call, tries, why)  # hung: replace and resend
         began[w] = beat[w] = time.monotonic()
       seen = set()
       for obj in ready:
@@ -601,18 +663,28 @@ class WorkerPool:
         seen.add(w)
         msg = self._receive(w)
         if msg is None:
-          self._retry(w, pending, tries, "died")
+          self._retry(w, call, tries, "died")
           began[w] = beat[w] = time.monotonic()
         elif msg[0] == "alive":
           beat[w] = now
-        elif msg[0] == "done" and msg[1] == self._call_id:
+        elif msg[0] == "done" and msg[1] == call.id:
           del pending[w]
         elif msg[0] == "error":
-          for v in pending:  # let the others finish so the pool stays consistent
-            if v != w:
-              self._drain(v)
+          del pending[w]
+          self._drop_calls()
           raise WorkerError(f"{self.kind} worker {w} raised:\n{msg[1]}")
-    return self.output[start:start + batch]
+    call.done = True
+
+  def _drop_calls(self) -> None:
+    """Lets every worker finish its slices of the calls in flight (so the pool
+    stays consistent) and forgets those calls."""
+    replaced = set()
+    for call in self._calls:
+      if not call.done:
+        for v in set(call.pending) - replaced:
+          if not self._drain(v):
+            replaced.add(v)
+    self._calls = []
 
   def _receive(self, w: int):
     """Worker w's next message, or None if its pipe closed (it died)."""
@@ -622,15 +694,19 @@ class WorkerPool:
     except (EOFError, OSError):
       return None
 
-  def _send(self, w: int, a: int, b: int) -> None:
+  def _send(self, w: int, call: _Call) -> None:
+    a, b = call.slices[w]
     try:
-      self._conns[w].send(("render", self._call_id, a, b, self._cur))
+      self._conns[w].send(("render", call.id, a, b, call.cur))
     except (BrokenPipeError, ConnectionResetError):
       pass  # the worker died before this call: its sentinel triggers the retry
 
-  def _retry(self, w: int, pending: dict, tries: dict, why: str) -> None:
+  def _retry(self, w: int, call: _Call, tries: dict, why: str) -> None:
+    """Replaces worker w and sends its replacement w's slices of `call` and of
+    every later call in flight (the dead worker's queue)."""
     tries[w] += 1
     if tries[w] > self.max_retries:
+      self._drop_calls()
       raise WorkerError(f"{self.kind} worker {w} {why}, {tries[w]} times in one call")
     if why != "died":
       limit = (f"no heartbeat for {self.timeout:g} s: set by make(worker_timeout=...) or "
@@ -639,10 +715,13 @@ class WorkerPool:
       _announce(f"{self.kind} worker {w} (pid {self._procs[w].pid}) {why}; replacing it "
                 f"and redoing its slice ({limit})")
     self._replace(w)
-    self._send(w, *pending[w])
+    for later in self._calls[self._calls.index(call):]:
+      if w in later.pending:
+        self._send(w, later)
 
-  def _drain(self, w: int) -> None:
-    """Waits for worker w's reply to the current call (or replaces it)."""
+  def _drain(self, w: int) -> bool:
+    """Waits for worker w's reply to its oldest slice in flight; False where it
+    died or hung instead (it is replaced, with nothing queued)."""
     began = beat = time.monotonic()
     while True:
       conn, proc = self._conns[w], self._procs[w]
@@ -654,7 +733,7 @@ class WorkerPool:
         continue
       if msg is None:
         self._replace(w)
-      return
+      return msg is not None
 
 
 class OwnsWorkerPool:

@@ -298,19 +298,20 @@ class RenderPool(OwnsWorkerPool):
   def submit(self, qpos, looks: VisualParams | rmod.Looks,
              model_variables: Mapping[str, Any] | None = None, *, restart=None) -> None:
     """Hands N envs' frames to the workers and returns without waiting for them
-    (arguments as for `render`); `collect` waits. One call may be in flight."""
+    (arguments as for `render`); `collect` waits. One call of the pool's rows may
+    be in flight; row views (`rows`) each have one of their own."""
     self._submit(qpos, looks, model_variables, restart, 0)
 
   def _submit(self, qpos, looks, model_variables, restart, start: int) -> None:
-    """`submit` of envs [start, start + N) of the batch."""
-    if self._pool.busy:
-      raise RuntimeError("submit() called twice: call collect() first")
+    """`submit` of envs [start, start + N) of the batch, queued behind the calls
+    in flight (which hold other rows)."""
     qpos = np.asarray(qpos)
     if qpos.ndim != 2 or qpos.shape[1] != self.nq:
       raise ValueError(f"qpos must have shape (N, {self.nq}), got {qpos.shape}")
     n = qpos.shape[0]
     if not 1 <= n <= self.max_batch - start:
       raise ValueError(f"batch size must be in [1, {self.max_batch - start}], got {n}")
+    self._pool.check_free(n, start)   # before the inputs of a call in flight change
     if not isinstance(looks, rmod.Looks):  # VisualParams
       if looks.domain and looks.domain != self.domain:
         raise ValueError(f"looks are for {looks.domain!r}, the pool renders {self.domain!r}")
@@ -337,7 +338,11 @@ class RenderPool(OwnsWorkerPool):
   def collect(self, copy_out: bool = True) -> np.ndarray:
     """Waits for the frames `submit` handed out: uint8 (N, height, width,
     3 · frame_stack), the same pixels `render` returns (`copy_out` as there)."""
-    out = self._pool.wait()
+    return self._collect(copy_out, 0)
+
+  def _collect(self, copy_out: bool, start: int) -> np.ndarray:
+    """`collect` of the call of envs from `start` (and of every call before it)."""
+    out = self._pool.wait(start)
     return out.copy() if copy_out else out
 
 
@@ -347,8 +352,9 @@ class RenderRows:
   (`RenderPool.rows`): `render`, `submit` and `collect` as the pool's, on those
   rows, each view's frame stacks its own. Envs that share one pool's workers
   (`dmcr_jax.make(..., render_pool=view)`) each take a view of their own rows;
-  one call is in flight at a time among them. `close` does nothing (the pool's
-  owner closes the pool).
+  each view may have a call in flight while the others have theirs: the workers
+  draw them in the order submitted. `close` does nothing (the pool's owner closes
+  the pool).
 
   Attributes:
     pool: the `RenderPool`.
@@ -388,7 +394,7 @@ class RenderRows:
     if not self._submitted:
       raise RuntimeError("collect() without a submit() of these rows")
     self._submitted = False
-    return self.pool.collect(copy_out)
+    return self.pool._collect(copy_out, self.start)
 
   def close(self) -> None:
     """Nothing: the pool's owner closes it."""
