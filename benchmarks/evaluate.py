@@ -31,7 +31,7 @@ sizes, evaluated with `dmcr-evaluate`'s greedy policy):
     python -m dmcr_jax.benchmarks.evaluate --task walker-walk --agents 1,4 --equal-batch \\
         --no-baseline --out benchmarks/results/evaluate_h200.jsonl   # K=4 beside K=1, same envs
     python -m dmcr_jax.benchmarks.evaluate --task walker-walk --renderers pool --agents 1 \\
-        --passes 1 --out benchmarks/results/evaluate_h200.jsonl   # the full pool protocol once
+        --passes 1 --out benchmarks/results/evaluate_h100.jsonl   # the full pool protocol once
 
 One JSON line per row (`dmcr_jax.benchmarks.rows`) and a Markdown table beside
 the JSONL file.
