@@ -346,9 +346,18 @@ def test_agents_sharded_over_two_devices_or_mapped_match_one_vmapped_call():
       for a, b in zip(jax.tree.leaves(plain.agents.params), jax.tree.leaves(sharded.agents.params)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=2e-3)
       obs = jnp.asarray(rng.integers(0, 255, (4, 16, 16, 9), np.uint8))
+      acted = np.asarray(step.act_jit(plain, obs, spec=spec)[1])
       np.testing.assert_allclose(
-          np.asarray(step.act_jit(plain, obs, spec=spec)[1]),
-          np.asarray(step.act_jit(sharded, put(obs), spec=spec, mesh=mesh)[1]), atol=1e-3)
+          acted, np.asarray(step.act_jit(sharded, put(obs), spec=spec, mesh=mesh)[1]), atol=1e-3)
+      # The agents' policies one after the other (`map`) act as the vmapped ones,
+      # each agent's as its own `sac.act` on its envs with its key of the step.
+      np.testing.assert_allclose(
+          acted, np.asarray(step.act_jit(plain, obs, spec=mapped_spec)[1]), atol=1e-5)
+      keys = jax.random.split(jax.random.split(plain.key)[1], 2)
+      for k in range(2):
+        one = jax.tree.map(lambda x: x[k], plain.agents)
+        np.testing.assert_allclose(acted[k], np.asarray(sac.act(one, obs[2 * k:2 * k + 2], keys[k])),
+                                   atol=1e-5)
       print("ok")
       """)
   # The session's compile flags (conftest) and two forced host devices.

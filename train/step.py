@@ -28,10 +28,10 @@ env steps;
 `dmcr_jax.train.device_loop` (device driver) scans them around `jax_env.PixelEnv.step` in
 one XLA call per chunk of steps.
 
-Agent batching (`StepSpec.agent_loop`): "vmap" runs the K agents' updates as one
-batched computation (their convolutions become grouped convolutions); "map" runs
-them one after the other in the same call (`jax.lax.map`), faster on GPUs for
-several agents (`benchmarks/learner.py`). With a `mesh`, the agent axis is split
+Agent batching (`StepSpec.agent_loop`, `over_agents`): "vmap" runs the K agents'
+updates and policies as one batched computation (their convolutions become grouped
+convolutions); "map" runs them one after the other in the same call
+(`jax.lax.map`), faster on GPUs for several agents (`benchmarks/learner.py`). With a `mesh`, the agent axis is split
 over its devices with `shard_map` (each device runs the vmapped function on its
 own agents).
 """
@@ -108,13 +108,15 @@ def to_env_action(action, low, high):
 
 
 def policy_actions(agents: sac.AgentState, obs: jax.Array, keys: jax.Array,
-                   random: jax.Array):
+                   random: jax.Array, agent_loop: str = "vmap"):
   """Actions in [−1, 1] (K, N, A) for observations (K, N, H, W, C): the policies'
-  samples, or uniform where `random` (a traced bool: the warm-up)."""
+  samples (agent k's `sac.act` on its envs, the agents batched by `over_agents`
+  with `agent_loop`, as the updates are), or uniform where `random` (a traced
+  bool: the warm-up)."""
   size = agents.networks.actor.action_size
   uniform = lambda: jax.vmap(lambda o, k: jax.random.uniform(
       k, (o.shape[0], size), minval=-1, maxval=1))(obs, keys)
-  policy = lambda: jax.vmap(sac.act)(agents, obs, keys)
+  policy = lambda: over_agents(sac.act, agent_loop, obs.shape[0])(agents, obs, keys)
   return jax.lax.cond(random, uniform, policy)
 
 
@@ -136,7 +138,8 @@ def act(learner: Learner, obs: jax.Array, spec: StepSpec, mesh=None):
   obs = obs.reshape((k, n) + obs.shape[1:])
   # The warm-up flag travels with the agent axis, so `shard_map` splits it too.
   random = jnp.broadcast_to(learner.step < spec.warmup_steps, (k,))
-  fn = lambda agents, obs, keys, random: policy_actions(agents, obs, keys, random[0])
+  fn = lambda agents, obs, keys, random: policy_actions(agents, obs, keys, random[0],
+                                                      spec.agent_loop)
   action = _agent_parallel(fn, mesh)(learner.agents, obs, jax.random.split(k_act, k),
                                      random)
   env_action = to_env_action(action.reshape(k * n, -1), spec.low, spec.high)
