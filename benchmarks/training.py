@@ -19,7 +19,8 @@ The baseline in the same run: the learner alone (`dmcr_jax.benchmarks.learner`'s
 updates of the same agents, batch, dtype and augmentation on full random
 buffers). The end-to-end rate compared with it is the steady one: transitions
 per second per agent between the first and the last episode ends after the
-warm-up (so compilation and the random-action phase are left out), times `utd`;
+warm-up (so compilation and the random-action phase are left out; a run with one
+such end: from it to the run's end, summary.json's "steady"), times `utd`;
 `ratio` = that rate over the learner's updates/s. 1.0 means the env costs the
 training loop nothing.
 
@@ -32,7 +33,7 @@ the same devices; without it, one run on the devices `train` picks. Each row
 carries its device count and the total steady rate over all agents (steady
 transitions/s per agent × K); with several counts also its scaling efficiency:
 that total over D times the one-device run's (1.0: linear; none when a run is
-too short for a steady rate: fewer than two episode ends past the warm-up).
+too short for a steady rate: no episode end past the warm-up).
 
     python -m dmcr_jax.benchmarks.training --out benchmarks/results/train_h100.jsonl
     python -m dmcr_jax.benchmarks.training --steps 2000 --num-envs 4 --quality fastest --out /tmp/t.jsonl
@@ -84,15 +85,26 @@ def first_reaching(log_rows: list[dict], threshold: float) -> dict | None:
               episode_return=float(r["episode_return"]))
 
 
-def steady_rate(log_rows: list[dict], after_step: int) -> float | None:
+def steady_rate(log_rows: list[dict], after_step: int, window: dict | None = None
+                ) -> float | None:
   """Transitions/s per agent between the first and the last episode end past
-  `after_step` (None with fewer than two such ends)."""
+  `after_step`; with fewer than two such ends, over `window` (summary.json's
+  "steady": from the first episode end past the warm-up to the run's end, the host
+  driver's), else None.
+
+  Args:
+    log_rows: rows of a run's log.csv (strings, as `csv.DictReader` gives them).
+    after_step: the warm-up's last step.
+    window: summary.json's "steady" ({"steps", "wall_s", …} per agent) or None.
+  """
   ends = sorted({(int(r["step"]), float(r["wall_s"])) for r in log_rows
                  if int(r["step"]) > after_step})
-  if len(ends) < 2 or ends[-1][1] <= ends[0][1]:
-    return None
-  (s0, w0), (s1, w1) = ends[0], ends[-1]
-  return (s1 - s0) / (w1 - w0)
+  if len(ends) >= 2 and ends[-1][1] > ends[0][1]:
+    (s0, w0), (s1, w1) = ends[0], ends[-1]
+    return (s1 - s0) / (w1 - w0)
+  if window and window.get("steps", 0) > 0 and window.get("wall_s", 0) > 0:
+    return window["steps"] / window["wall_s"]
+  return None
 
 
 def learner_alone(cfg, seconds: float = 3.0, devices: int = 1) -> dict:
@@ -139,7 +151,7 @@ def run(train_argv: list[str], threshold: float, run_dir: str, baseline: bool = 
   agents = len(cfg.agents())
   # After the warm-up and a little more: the first episode end past it still
   # carries the update's compilation, the rate starts there.
-  steady = steady_rate(log_rows, cfg.warmup_steps)
+  steady = steady_rate(log_rows, cfg.warmup_steps, summary.get("steady"))
   updates_alone = alone and alone["updates_per_s_per_agent"]
   return dict(
       bench="train", device=device.device_kind, platform=device.platform,

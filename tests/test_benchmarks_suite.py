@@ -279,6 +279,17 @@ def test_step_profile_breakdown_and_training_threshold():
   assert first_reaching(log, 990) is None
 
 
+def test_the_steady_rate_is_between_episode_ends_else_over_the_summarys_window():
+  from dmcr_jax.benchmarks.training import steady_rate
+  log = [dict(step="100", wall_s="5"), dict(step="300", wall_s="9"),
+         dict(step="200", wall_s="7")]
+  window = dict(steps=2016, wall_s=4.0)
+  assert steady_rate(log, 50, window) == pytest.approx(200 / 4)    # ends at 100 and 300
+  assert steady_rate(log, 250, window) == pytest.approx(2016 / 4)  # one end past 250
+  assert steady_rate(log, 250) is None
+  assert steady_rate(log, 250, dict(steps=0, wall_s=0.0)) is None
+
+
 def test_training_rows_break_a_steady_vector_step_down():
   from dmcr_jax.benchmarks.training import markdown, vector_step_ms
   steady = dict(steps=16000, wall_s=50.0,
