@@ -6,9 +6,10 @@ moving conditions), each a `dmcr_jax.make` pool env (made with the group's
 `moving` and `intensity`) drawn by one shared `RenderPool`'s workers; `run_pipelined`
 steps them round robin, so that one group's physics and policy (`_pool_act`, the
 jitted policy call) run while the workers draw another's frames, each group's
-frames queued behind the others' so that the workers never wait for the host. `pool_envs` opens a
-pass's envs and workers (once per pass, or once for every pass inside a `with` block
-of the `Protocol`), `block_runner` runs its blocks on them (`Protocol._pool_runner`).
+frames queued behind the others' so that the workers need not wait for the host
+between groups. `pool_envs` opens a pass's envs and workers (once per pass, or once
+for every pass inside a `with` block of the `Protocol`), `block_runner` runs its
+blocks on them (`Protocol._pool_runner`).
 Returns are those of `dmcr_jax.make`'s env stepped by the same policy.
 
 Where the work runs (`pass_workers`): the physics of every group on the host CPU

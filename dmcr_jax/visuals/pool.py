@@ -305,15 +305,14 @@ def slice_bounds(batch: int, workers: int) -> list[tuple[int, int]]:
 @dataclasses.dataclass
 class _Call:
   """A submitted call: its id, rows [start, start + batch), output buffer `cur`,
-  each worker's slice (`slices`), the slices not yet done (`pending`), and whether
-  every slice is done (`done`: completed, not yet collected by `wait`)."""
+  each worker's slice (`slices`) and the workers whose slice is not yet done
+  (`pending`; empty once the call is complete, though not yet collected by `wait`)."""
   id: int
   start: int
   batch: int
   cur: int
   slices: dict
-  pending: dict
-  done: bool = False
+  pending: set
 
   def overlaps(self, start: int, batch: int) -> bool:
     return start < self.start + self.batch and self.start < start + batch
@@ -600,7 +599,7 @@ class WorkerPool:
     self._latest[start:start + batch] = self._cur
     slices = {w: (a + start, b + start) for w, (a, b) in enumerate(self.slices(batch))
               if b > a}
-    call = _Call(self._call_id, start, batch, self._cur, slices, dict(slices))
+    call = _Call(self._call_id, start, batch, self._cur, slices, set(slices))
     for w in slices:
       self._send(w, call)
     self._calls.append(call)
@@ -625,8 +624,7 @@ class WorkerPool:
       if call is None:
         raise RuntimeError(f"wait({start}) without a submitted call of rows from {start}")
     for c in self._calls[:self._calls.index(call) + 1]:
-      if not c.done:
-        self._complete(c)
+      self._complete(c)
     self._calls.remove(call)
     return self._outputs[call.cur][call.start:call.start + call.batch]
 
@@ -668,22 +666,20 @@ class WorkerPool:
         elif msg[0] == "alive":
           beat[w] = now
         elif msg[0] == "done" and msg[1] == call.id:
-          del pending[w]
+          pending.discard(w)
         elif msg[0] == "error":
-          del pending[w]
+          pending.discard(w)
           self._drop_calls()
           raise WorkerError(f"{self.kind} worker {w} raised:\n{msg[1]}")
-    call.done = True
 
   def _drop_calls(self) -> None:
     """Lets every worker finish its slices of the calls in flight (so the pool
     stays consistent) and forgets those calls."""
     replaced = set()
     for call in self._calls:
-      if not call.done:
-        for v in set(call.pending) - replaced:
-          if not self._drain(v):
-            replaced.add(v)
+      for v in call.pending - replaced:
+        if not self._drain(v):
+          replaced.add(v)
     self._calls = []
 
   def _receive(self, w: int):
