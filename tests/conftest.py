@@ -45,7 +45,8 @@ def share_compilations() -> None:
 
 share_compilations()
 
-FAST_COMPILE_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimization_level=0")
+FAST_COMPILE_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimization_level=0",
+                      "--xla_cpu_parallel_codegen_split_count=1")
 
 
 def compile_faster() -> None:
@@ -61,6 +62,10 @@ def compile_faster() -> None:
     optimisation passes. Most of the suite's time is compiling, and LLVM's passes
     are a large part of each compilation; the programs run slower, which the
     suite's few long loops afford.
+  - `--xla_cpu_parallel_codegen_split_count=1`: LLVM generates each program's code
+    as one module instead of splitting it (a copy of the module per part) to
+    generate the parts on several threads. Two xdist workers keep both cores busy,
+    so the split buys no time and its splitting and copying cost processor time.
 
   Results may differ from the defaults' in the last bits of float32 (another
   instruction order, e.g. where a multiply-add is fused), and two different

@@ -91,26 +91,27 @@ def test_bad_protocols_are_rejected():
 @pytest.mark.slow
 def test_the_jax_renderer_runs_the_same_protocol(tmp_path, capsys):
   # The same protocol rendered by the JAX ray caster: the table has the same shape,
-  # and says which renderer drew it. Sized as `dmcr-demo`'s evaluation in
-  # test_demo.py (its task, 2 envs, same group and worker), which reuses its
-  # compilations.
+  # and says which renderer drew it. `dmcr-demo`'s evaluation in test_demo.py (its
+  # task, training looks, networks and evaluation config; same group and worker), so
+  # the block program is the one the demo compiled.
   from tests.test_demo import TINY as DEMO
   run_dir = _untrained_run(str(tmp_path / "run"), loop.TrainConfig(
-      **{**CFG.__dict__, "task": DEMO.task, "sac": DEMO.sac}))
-  cfg = ev.EvalConfig(**{**TINY.__dict__, "quality": "exact", "workers": None,
-                         "renderer": "jax", "conditions": ("none", "all"),
-                         "dynamics_seeds": 1, "train_episodes": 2})
+      **{**CFG.__dict__, "task": DEMO.task, "sac": DEMO.sac,
+         "visual_seeds": f"levels:{DEMO.train_looks}"}))
+  cfg = DEMO.eval_config()
+  assert cfg.renderer == "jax"
   summary = ev.evaluate(run_dir, cfg, out_dir=str(tmp_path / "eval"), agents=[0],
                         progress=False)
   row = summary["agents"][0]
   assert len(row["train"]["episodes"]) == cfg.train_episodes
-  for c in ("none", "all"):
+  assert summary["conditions"] == list(ev.conditions_for(DEMO.task))
+  for c in summary["conditions"]:
     assert len(row["conditions"][c]["episodes"]) == cfg.visual_seeds * cfg.dynamics_seeds
     assert np.isfinite(row["conditions"][c]["mean"])
   with open(tmp_path / "eval" / "eval.md") as f:
     assert "rendered by the JAX ray caster" in f.read()
-  # Without a progress bar, a line per block ("none" is the train look, so every
-  # episode of both conditions runs in one block).
+  # Without a progress bar, a line per block (every episode, the training looks'
+  # too, runs in one block).
   lines = [l for l in capsys.readouterr().err.splitlines() if l.startswith("evaluate: ")]
   assert [l.split(",")[0] for l in lines] == ["evaluate: block 1/1 done"], lines
 

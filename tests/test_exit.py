@@ -33,10 +33,10 @@ signal.signal(signal.SIGINT, signal.default_int_handler)
 import gymnasium
 import dmcr_jax
 from dmcr_jax.visuals import pool
-small = dict(image_size=16, workers=1, quality="fast", physics_device="cpu")
-envs = [dmcr_jax.make("cartpole-balance", num_envs=2, physics_workers=1, **small),
-        gymnasium.make("dmcr/cartpole-balance-v0", **small),
-        dmcr_jax.DmEnv("cartpole-balance", **small)]
+small = dict(image_size=16, workers=1, quality="fast", physics_device="cpu", frame_skip=100)
+envs = [dmcr_jax.make("pendulum-swingup", num_envs=2, physics_workers=1, **small),
+        gymnasium.make("dmcr/pendulum-swingup-v0", **small),
+        dmcr_jax.DmEnv("pendulum-swingup", **small)]
 for env in envs if sys.argv[2] == "reset" else ():
   env.reset()
 live = list(pool._LIVE)
@@ -129,7 +129,7 @@ def test_a_process_with_open_envs_exits_promptly_and_leaves_nothing(children, en
   if ending == "end":
     # The first compile is announced once per shape: the 2-env env, then the 1-env
     # shape of the gymnasium env (not again for the dm_env env of the same shape).
-    lines = [ln for ln in err.splitlines() if "compiling cartpole-balance's physics" in ln]
+    lines = [ln for ln in err.splitlines() if "compiling pendulum-swingup's physics" in ln]
     assert len(lines) == 2, err[-3000:]
     assert "for 2 envs on cpu, in 1 physics worker" in lines[0]
     assert "for 1 envs on cpu (" in lines[1]

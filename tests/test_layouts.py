@@ -106,22 +106,40 @@ def test_stride_two_blocks_pad_channels_for_either_multiple():
           (("bfloat16", "gpu"), ("float32", "gpu"), ("bfloat16", "cpu"))] == [32, 8, 8]
   rng = np.random.default_rng(1)
   normal = lambda *shape: jnp.asarray(rng.normal(size=shape), jnp.float32)
-  for h, w, c_in, c_out in ((84, 85, 9, 32), (21, 20, 3, 5), (6, 7, 1, 1), (9, 9, 12, 2)):
-    kernel, x = normal(3, 3, c_in, c_out), normal(2, h, w, c_in)
+  cases = ((84, 85, 9, 32), (21, 20, 3, 5), (6, 7, 1, 1), (9, 9, 12, 2))
+  multiples = (32, 8)
+  inputs = [(normal(3, 3, c_in, c_out), normal(2, h, w, c_in)) for h, w, c_in, c_out in cases]
+  for (_, _, c_in, _), (_, x) in zip(cases, inputs):
+    for multiple in multiples:
+      made = {}
+
+      def blocks_of(x, multiple=multiple):
+        data, made["per_pixel"] = layouts.stride_two_blocks(x, multiple)
+        return data
+      shape = jax.eval_shape(blocks_of, x).shape
+      assert shape[-1] % multiple == 0
+      if c_in == 9:
+        assert (shape[-1], made["per_pixel"]) == ((64, 16) if multiple == 32 else (40, 9))
+
+  @jax.jit
+  def convs_and_grads(inputs):  # one compilation for all cases
     conv = lambda k, x: jax.lax.conv_general_dilated(
         x, k, (2, 2), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC"))
-    expect = conv(kernel, x)
-    want = jax.grad(lambda k: jnp.sum(jnp.sin(conv(k, x))))(kernel)
-    for multiple in (32, 8):
-      data, per_pixel = layouts.stride_two_blocks(x, multiple)
-      assert data.shape[-1] % multiple == 0
-      if c_in == 9:
-        assert (data.shape[-1], per_pixel) == ((64, 16) if multiple == 32 else (40, 9))
-      run = lambda k: layouts.stride_two_conv(x, k, channel_multiple=multiple)
-      np.testing.assert_allclose(run(kernel), expect, rtol=1e-5,
-                                 atol=1e-5 * np.abs(expect).max())
-      got = jax.grad(lambda k: jnp.sum(jnp.sin(run(k))))(kernel)
-      np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4 * np.abs(want).max())
+    results = []
+    for kernel, x in inputs:
+      runs = [lambda k, x=x: conv(k, x)] + [
+          lambda k, x=x, m=m: layouts.stride_two_conv(x, k, channel_multiple=m)
+          for m in multiples]
+      results.append([(run(kernel), jax.grad(lambda k, run=run: jnp.sum(jnp.sin(run(k))))(kernel))
+                      for run in runs])
+    return results
+
+  for case, ((expect, want), *got) in zip(cases, convs_and_grads(inputs)):
+    for multiple, (out, grad) in zip(multiples, got):
+      np.testing.assert_allclose(out, expect, rtol=1e-5, atol=1e-5 * np.abs(expect).max(),
+                                 err_msg=str((case, multiple)))
+      np.testing.assert_allclose(grad, want, rtol=1e-4, atol=1e-4 * np.abs(want).max(),
+                                 err_msg=str((case, multiple)))
   with pytest.raises(ValueError, match="H, W ≥ 3"):
     Conv(4, 2, impl="blocks").init(jax.random.key(0), jnp.zeros((1, 2, 5, 3)))
 
@@ -177,20 +195,32 @@ def test_encoder_on_blocks_is_the_encoder_on_pixels():
   # pixels: the same initial parameters from one key, outputs and gradients; at the
   # paper's size, CURL's crop, sides that leave one output pixel, a single layer.
   rng = np.random.default_rng(3)
-  for side, layers, channels, input_size in ((84, 4, 32, None), (100, 4, 4, 84),
-                                             (15, 4, 4, None), (16, 2, 3, None),
-                                             (84, 1, 4, None)):
-    obs = jnp.asarray(rng.integers(0, 256, (2, side, side, 9)), jnp.uint8)
+  cases = ((84, 4, 32, None), (100, 4, 4, 84), (15, 4, 4, None), (16, 2, 3, None),
+           (84, 1, 4, None))
+  obs = [jnp.asarray(rng.integers(0, 256, (2, side, side, 9)), jnp.uint8)
+         for side, *_ in cases]
+  encoders = []
+  for side, layers, channels, input_size in cases:
     pixels = Encoder(channels=channels, feature_dim=6, num_layers=layers,
                      input_size=input_size, impl="pixels")
-    blocks = pixels.clone(impl="blocks")
-    params, block_params = (e.init(jax.random.key(4), obs) for e in (pixels, blocks))
-    assert _same_params(params, block_params)
-    case = (side, layers, input_size)
-    expect, got = (e.apply(params, obs) for e in (pixels, blocks))
+    encoders.append((pixels, pixels.clone(impl="blocks")))
+
+  @jax.jit
+  def init_apply_and_grads(obs):  # one compilation for all cases
+    results = []
+    for (pixels, blocks), x in zip(encoders, obs):
+      params, block_params = (e.init(jax.random.key(4), x) for e in (pixels, blocks))
+      expect, got = (e.apply(params, x) for e in (pixels, blocks))
+      want, grads = (jax.grad(lambda p, e=e: jnp.sum(jnp.sin(3 * e.apply(p, x))))(params)
+                     for e in (pixels, blocks))
+      results.append((params, block_params, expect, got, want, grads))
+    return results
+
+  for case, (params, block_params, expect, got, want, grads) in zip(
+      cases, init_apply_and_grads(obs)):
+    case = (case[0], case[1], case[3])   # side, layers, input_size
+    assert _same_params(params, block_params), case
     np.testing.assert_allclose(got, expect, rtol=1e-5, atol=1e-5, err_msg=str(case))
-    want, grads = (jax.grad(lambda p, e=e: jnp.sum(jnp.sin(3 * e.apply(p, obs))))(params)
-                   for e in (pixels, blocks))
     for g, w in zip(jax.tree_util.tree_leaves(grads), jax.tree_util.tree_leaves(want)):
       np.testing.assert_allclose(g, w, rtol=1e-4, atol=1e-4 * np.abs(w).max(), err_msg=str(case))
 

@@ -39,6 +39,9 @@ OPTS = dict(visual_seeds=2, dynamics_seeds=2, train_episodes=3,
             action_repeat=100, seed=0)
 RAY = dict(shadows=False, reflection=False)
 """The ray caster's options of the passes and the host-stepped env they are checked against."""
+MOVING = ("moving-camera@0.5", "moving-all@0.3", "moving-camera@0")
+"""Moving conditions the one-agent pass (`single`) also holds, for test_protocol_moving
+(same group): a factor moving alone, every factor moving, a factor at intensity 0."""
 
 
 def pixel_policy(params, obs, key):
@@ -89,10 +92,17 @@ def old_path(params, renderer="jax", copies=1, **render):
   return out
 
 
+def prepare_single():
+  """The planned protocol of one agent: `OPTS`' conditions and the `MOVING` ones in one
+  block program, which test_protocol_moving's pass (same group and worker) reuses."""
+  return P.prepare(TASK, pixel_policy, **RAY,
+                   **{**OPTS, "conditions": OPTS["conditions"] + MOVING})
+
+
 @pytest.fixture(scope="module")
 def single():
   """The planned protocol of one agent and its pass with `make_params()`."""
-  proto = P.prepare(TASK, pixel_policy, **RAY, **OPTS)
+  proto = prepare_single()
   return proto, proto(make_params())
 
 

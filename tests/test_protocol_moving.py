@@ -46,13 +46,14 @@ def policy(params, obs, key):
 PARAMS = dict(w=jax.random.normal(jax.random.key(0), (4,)) * 4.0, b=jnp.float32(-0.5))
 
 
-def host_returns(renderer, conditions, opts=OPTS, **render):
+def host_returns(renderer, conditions, opts=OPTS, act=None, **render):
   """Each condition's returns from `dmcr_jax.make` envs stepped from the host: one
-  static env swept over the static conditions, one env per moving condition."""
+  static env swept over the static conditions, one env per moving condition; the
+  actions `act(obs)` (default: `policy` with `PARAMS`)."""
   seeds = np.repeat(P.held_out_seeds(opts["visual_seeds"], opts["seed"]),
                     opts["dynamics_seeds"])
   resets = P.reset_seeds(seeds.size, opts["seed"])
-  act = jax.jit(lambda obs: policy(PARAMS, obs, None))
+  act = act or jax.jit(lambda obs: policy(PARAMS, obs, None))
   make = lambda **kw: dmcr_jax.make(
       TASK, num_envs=seeds.size, visual_seeds=seeds, frame_skip=opts["action_repeat"],
       image_size=opts["image_size"], seed=opts["seed"], renderer=renderer, **render, **kw)
@@ -85,14 +86,18 @@ def check_equal(result, want):
 
 @pytest.mark.slow
 def test_moving_conditions_return_what_the_host_stepped_moving_env_returns():
-  # One block program holds a static condition, a factor moving alone, every factor
-  # moving, and a factor at intensity 0; the host env moves the camera alone.
-  render = dict(shadows=False, reflection=False)   # a smaller program: same looks
-  conditions = ("none", "moving-camera@0.5", "moving-all@0.3", "moving-camera@0")
-  proto = P.prepare(TASK, policy, conditions=conditions, **render, **OPTS)
+  # One block program holds static conditions, a factor moving alone, every factor
+  # moving, and a factor at intensity 0; the host env moves the camera alone. The
+  # pass is test_protocol's one-agent pass (its policy, options and conditions, which
+  # hold these moving ones; same group and worker): one compilation serves both.
+  from tests import test_protocol as TP
+  proto = TP.prepare_single()
+  assert set(TP.MOVING) <= set(proto.conditions) and "none" in proto.conditions
   assert proto.plan.moving == ("camera", "light", "body", "floor", "background")
-  result = proto(PARAMS)
-  check_equal(result, host_returns("jax", ("moving-camera@0.5",), **render))
+  params = TP.make_params()
+  result = proto(params)
+  act = jax.jit(lambda obs: TP.pixel_policy(params, obs, jax.random.key(0)))
+  check_equal(result, host_returns("jax", ("moving-camera@0.5",), TP.OPTS, act, **TP.RAY))
   assert not np.array_equal(result.returns["moving-all@0.3"], result.returns["none"])
 
 
