@@ -75,6 +75,24 @@ def test_one_seed_per_label_is_said_to_have_no_noise_estimate(tmp_path):
   assert "One seed for old and new: no spread" in table
 
 
+def test_windows_without_an_episode_are_counted_not_shown(tmp_path):
+  # Episodes of all envs end together every 400 steps: 3 of 10 windows hold one.
+  steps = np.array([400, 800, 1200])
+  runs = {label: [curves.read_log(write_log(tmp_path / label, [[1.0, 2.0, 3.0],
+                                                               [1.5, 2.5, 3.5]], steps))]
+          for label in ("old", "new")}
+  result = curves.compare(runs, bins=10)
+  shown = [i for i, m in enumerate(result["labels"]["old"]["mean"]) if np.isfinite(m)]
+  assert shown == [0, 4, 9]
+  table = curves.markdown(result)
+  rows = [l for l in table.splitlines() if l.startswith("| ") and "–" in l.split("|")[1]]
+  e = result["edges"]
+  assert [r.split("|")[1].strip() for r in rows] == [f"{e[i]:,.0f}–{e[i + 1]:,.0f}"
+                                                      for i in shown]
+  assert "7 of 10 windows, in which no run ended an episode, are not shown" in table
+  assert "3 of 3 windows within seed noise" in table
+
+
 def test_windows_end_at_the_shortest_run(tmp_path):
   runs = {"a": [curves.read_log(write_log(tmp_path / "a", [np.arange(10.0)], STEPS))],
           "b": [curves.read_log(write_log(tmp_path / "b", [np.arange(5.0)], STEPS[:5]))]}

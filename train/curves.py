@@ -125,7 +125,9 @@ def compare(labelled_runs: dict[str, list[list[dict]]], bins: int = 10) -> dict:
 
 
 def markdown(result: dict) -> str:
-  """The comparison as one Markdown table: a row per window."""
+  """The comparison as one Markdown table: a row per window in which an episode of
+  some run ended (the others are counted below the table), then each label's count
+  of windows within seed noise."""
   labels = list(result["labels"])
   first = labels[0]
   head = ["steps"] + [f"{label} mean (spread)" for label in labels]
@@ -133,7 +135,11 @@ def markdown(result: dict) -> str:
   lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
   edges = result["edges"]
   fmt = lambda v: "–" if not np.isfinite(v) else f"{v:.1f}"
+  empty = 0
   for i in range(len(edges) - 1):
+    if not any(np.isfinite(result["labels"][label]["mean"][i]) for label in labels):
+      empty += 1
+      continue
     cells = [f"{edges[i]:,.0f}–{edges[i + 1]:,.0f}"]
     for label in labels:
       curve = result["labels"][label]
@@ -144,6 +150,9 @@ def markdown(result: dict) -> str:
       cells.append(fmt(d["delta"][i]) + ("" if ok is None else
                                           " (within noise)" if ok else " (**outside**)"))
     lines.append("| " + " | ".join(cells) + " |")
+  if empty:
+    lines.append(f"\n{empty} of {len(edges) - 1} windows, in which no run ended an episode, are "
+                 "not shown (a run's envs may end their episodes together).")
   for label in labels[1:]:
     flags = [f for f in result["diff"][label]["within_noise"] if f is not None]
     single = [lb for lb in (first, label) if len(result["labels"][lb]["agents"]) < 2]
