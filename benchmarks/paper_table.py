@@ -19,7 +19,10 @@ JSON beside it:
   when the agents came with it), evaluation wall time and device, and its file;
 - the ray caster against the pool, condition by condition, where a task and
   method were evaluated with both (over the seeds evaluated with both);
-- which rows the paper-table issue asks for are still missing.
+- which rows the paper-table issue asks for are still missing;
+- where the agents were also evaluated under moving looks (`dmcr-evaluate
+  --moving-intensities`), those conditions' means per row and intensity, beside
+  its static "none" (`moving_markdown`).
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ import os
 import numpy as np
 
 from dmcr_jax.env_checks import ACTION_REPEAT, default_frame_skip
+from dmcr_jax.protocol_report import split_conditions
 from dmcr_jax.train import paper_results
 
 TRAINING_STEPS = {"walker-walk": 250_000, "cheetah-run": 250_000, "hopper-stand": 250_000,
@@ -46,12 +50,14 @@ WANTED = tuple((task, "SAC+AUG") for task in TRAINING_STEPS) + (
 
 def seed_means(by_seed: dict) -> dict:
   """seeds, and the means over them of the train return and of each condition all
-  of them have, with E_G of "all" computed from those means (as the paper does)."""
+  of them have (the paper's columns, then any moving ones), with E_G of "all"
+  computed from those means (as the paper does)."""
   seeds = sorted(by_seed)
   per_seed = [by_seed[s] for s in seeds]
   train = float(np.mean([p["train"] for p in per_seed]))
   conditions = {c: float(np.mean([p["conditions"][c] for p in per_seed]))
-                for c in paper_results.COLUMNS if all(c in p["conditions"] for p in per_seed)}
+                for c in per_seed[0]["conditions"]
+                if all(c in p["conditions"] for p in per_seed)}
   all_ = conditions.get("all")
   return dict(seeds=seeds, train=train, conditions=conditions,
               e_g_all=None if all_ is None or train == 0 else (train - all_) / train)
@@ -70,7 +76,8 @@ def rows_of(result: dict, source: str) -> list[dict]:
   training = result.get("training") or {}
   rows = []
   for method, agents in groups.items():
-    columns = [c for c in paper_results.COLUMNS if c in agents[0]["conditions"]]
+    columns = ([c for c in paper_results.COLUMNS if c in agents[0]["conditions"]]
+               + [c for c, _, _ in split_conditions(agents[0]["conditions"])[1]])
     by_seed = {a["seed"]: dict(train=a["train"]["mean"],
                                conditions={c: a["conditions"][c]["mean"] for c in columns})
                for a in agents}
@@ -229,7 +236,36 @@ def markdown(runs: list[dict]) -> str:
   gaps = missing(rows)
   out += ["", "Still missing (evaluated with the pool): "
           + (", ".join(f"{m} on {t}" for t, m in gaps) if gaps else "none") + "."]
+  out += moving_markdown(rows)
   return "\n".join(out) + "\n"
+
+
+def moving_markdown(rows: list[dict]) -> list[str]:
+  """The moving conditions of `merge`'s rows that ran any, as lines of Markdown (none
+  when no row did): a line per row and intensity with its static "none", a column per
+  moving factor ("all": every factor moving; "–" where the row did not run it) and
+  E_G of "all" at that intensity."""
+  moving = [(r, split_conditions(r["conditions"])[1]) for r in rows]
+  moving = [(r, m) for r, m in moving if m]
+  if not moving:
+    return []
+  factors = list(dict.fromkeys(f for _, m in moving for _, f, _ in m))
+  factors = [f for f in factors if f != "all"] + ["all"] * ("all" in factors)
+  out = ["", "Under moving looks (dm_control's look with one factor, or all, moving within "
+         "each episode; intensity as the Distracting Control Suite's difficulty; "
+         "`moving-<factor>@<intensity>`), mean return beside the static \"none\":", "",
+         "| task | method | renderer | seeds | intensity | none | " + " | ".join(factors)
+         + " | E_G (all) |", "|---|---|---|---:|---:|---:|" + "---:|" * len(factors) + "---:|"]
+  for r, m in moving:
+    name = {(f, i): c for c, f, i in m}
+    for level in dict.fromkeys(i for _, _, i in m):
+      cells = [_num(r["conditions"].get(name.get((f, level)))) for f in factors]
+      all_ = r["conditions"].get(name.get(("all", level)))
+      e_g = "–" if all_ is None or r["train"] == 0 else f"{100 * (r['train'] - all_) / r['train']:.1f} %"
+      out.append(f"| {r['task']} | {r['method']} | {r['renderer']} | {len(r['seeds'])} | "
+                 f"{level:g} | {_num(r['conditions'].get('none'))} | " + " | ".join(cells)
+                 + f" | {e_g} |")
+  return out
 
 
 def main(argv=None) -> None:

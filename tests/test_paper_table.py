@@ -141,3 +141,35 @@ def test_files_that_cannot_make_one_row_are_refused_by_name(tmp_path, capsys):
   other.write_text(json.dumps(result))
   with pytest.raises(ValueError, match="another protocol"):
     paper_table.merge(paper_table.collect([one, str(other)]))
+
+
+def moving(base, factors=("camera", "all"), levels=(0.1, 0.2)):
+  """Moving conditions as the protocol names them, `base` minus 100 × intensity
+  minus 1 per factor."""
+  return {f"moving-{f}@{i:g}": base - 100 * i - k for i in levels
+          for k, f in enumerate(factors)}
+
+
+def test_moving_conditions_get_their_own_table_beside_the_static_none(tmp_path):
+  plain = eval_json(tmp_path / "p.json", "walker-walk", [(2, "drq", 900.0, returns(800.0))],
+                    renderer="jax")
+  assert "Under moving looks" not in paper_table.markdown(paper_table.collect([plain]))
+  one = eval_json(tmp_path / "m.json", "walker-walk",
+                  [(0, "drq", 900.0, {**returns(800.0), **moving(700.0)}),
+                   (1, "drq", 920.0, {**returns(820.0), **moving(720.0)}),
+                   (0, "cj+drq", 910.0, {**returns(850.0), **moving(750.0, ("body",))})],
+                  renderer="jax")
+  [aug, cj] = paper_table.merge(paper_table.collect([one]))
+  assert aug["conditions"]["moving-all@0.2"] == pytest.approx(710.0 - 20 - 1)
+  lines = paper_table.markdown(paper_table.collect([one])).splitlines()
+  head = next(i for i, l in enumerate(lines) if l.startswith("| task | method | renderer | seeds | intensity"))
+  assert lines[head] == ("| task | method | renderer | seeds | intensity | none | camera | "
+                         "body | all | E_G (all) |")
+  e_g = 100 * (910.0 - (710.0 - 10 - 1)) / 910.0
+  assert lines[head + 2] == f"| walker-walk | SAC+AUG | jax | 2 | 0.1 | 810.0 | 700.0 | – | 699.0 | {e_g:.1f} % |"
+  assert lines[head + 3].startswith("| walker-walk | SAC+AUG | jax | 2 | 0.2 | 810.0 | 690.0 | – | 689.0 |")
+  # A factor a row did not run is "–", and so is E_G without "all".
+  assert lines[head + 4] == "| walker-walk | SAC+CJ+AUG | jax | 1 | 0.1 | 850.0 | – | 740.0 | – | – |"
+  # A seed evaluated without moving conditions leaves its row's moving means out.
+  [row] = paper_table.merge(paper_table.collect([plain, one])[:2])
+  assert row["seeds"] == [0, 1, 2] and not any(c.startswith("moving-") for c in row["conditions"])
