@@ -70,6 +70,7 @@ def compare(a: dict, b: dict) -> list[dict]:
 
 
 def markdown(rows: list[dict], first: str, second: str) -> str:
+  """`compare`'s rows as a Markdown table; `first` and `second` name the two dumps."""
   count = lambda key: lambda r: f"{r[key]:,}"
   return R.table(rows, [
       ("domain", "domain"), ("frames", "frames"),

@@ -56,6 +56,9 @@ def baseline(task: str, frames: int, size: int) -> float:
 
 def bench_pool(task: str, batch: int, workers: int, quality: str, size: int,
                repeats: int) -> dict:
+  """One row of the pool benchmark: `RenderPool`'s start time and frames/s rendering
+  `batch` frames of `task` per call at `quality` (`repeats` timed calls after a warm-up),
+  with up to 16 of the exact preset's frames checked against the reference renderer."""
   from dmcr_jax.visuals import render_model as rmod
   from dmcr_jax.visuals.render_pool import RenderPool
   t0 = time.perf_counter()

@@ -273,4 +273,5 @@ def procedural_background(index: int, size: int = BACKGROUND_SIZE) -> np.ndarray
 
 
 def background_name(index: int) -> str:
+  """The skybox texture's name in a MuJoCo model for background `index` ("sky_007")."""
   return f"sky_{index:03d}"

@@ -41,6 +41,7 @@ QUALITY: dict[str, tuple[int | None, bool, bool]] = {
 
 
 def check_quality(quality: str) -> str:
+  """`quality` if it names a render preset of `QUALITY`, else a ValueError naming them."""
   if quality not in QUALITY:
     raise ValueError(f"Unknown render quality {quality!r}; valid: {', '.join(QUALITY)}.")
   return quality
