@@ -261,7 +261,8 @@ def moving_markdown(rows: list[dict]) -> list[str]:
     for level in dict.fromkeys(i for _, _, i in m):
       cells = [_num(r["conditions"].get(name.get((f, level)))) for f in factors]
       all_ = r["conditions"].get(name.get(("all", level)))
-      e_g = "–" if all_ is None or r["train"] == 0 else f"{100 * (r['train'] - all_) / r['train']:.1f} %"
+      e_g = ("–" if all_ is None or r["train"] == 0
+             else f"{100 * (r['train'] - all_) / r['train']:.1f} %")
       out.append(f"| {r['task']} | {r['method']} | {r['renderer']} | {len(r['seeds'])} | "
                  f"{level:g} | {_num(r['conditions'].get('none'))} | " + " | ".join(cells)
                  + f" | {e_g} |")
